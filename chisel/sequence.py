@@ -1,0 +1,364 @@
+"""The *sequence* on-disk contract (version 1): the updater's input.
+
+A sequence folder holds one endoscopic pass: intrinsics, per-frame RGB, optional depth,
+per-frame tracked poses (and, for synthetic data, the true poses), optional masks::
+
+    <seq>/
+      sequence.json        format, version, camera, frame count, what is present, meta
+      poses.txt            N lines, 16 numbers each: tracked T_world_from_cam, row-major, mm
+      poses_true.txt       optional: true T_world_from_cam (synthetic data)
+      rgb/000000.png       optional: uint8 RGB
+      depth/000000.npy     optional: float32 z-depth in mm, 0 = invalid (NaN in memory)
+      mask/000000.png      optional: uint8, 255 = use this pixel (tools, blood, field stop)
+      camera_mask.png      optional: uint8, 255 inside the endoscope's circular field stop
+
+Readable by a person (JSON, text, PNG) and loadable without pickle (``.npy`` is read with
+``allow_pickle=False``). The one place that converts depth between disk (0 = invalid) and
+memory (NaN = invalid) is :func:`depth_to_disk` / :func:`depth_from_disk`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from chisel.atomic import atomic_dir
+from chisel.errors import DepthUnitsError, FormatVersionError, InvalidInputError, PoseError
+from chisel.geometry import Camera, check_rigid
+
+SEQUENCE_FORMAT = "endoscopic-chisel/sequence"
+SEQUENCE_VERSION = 1
+
+MIN_PLAUSIBLE_MEDIAN_DEPTH_MM = 0.5
+"""A valid depth map whose median is below this is taken to be in metres, not mm.
+
+Endoscopic working distances are 5-30 mm; in metres they read 0.005-0.03."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame in memory."""
+
+    index: int
+    T_world_from_cam: np.ndarray
+    """(4, 4) float64, tracked pose (what the navigation system reports), mm."""
+    rgb: np.ndarray | None = None
+    """(H, W, 3) uint8 RGB."""
+    depth_mm: np.ndarray | None = None
+    """(H, W) float32 z-depth in mm, NaN = invalid."""
+    mask: np.ndarray | None = None
+    """(H, W) bool, True = use this pixel."""
+    T_world_from_cam_true: np.ndarray | None = None
+    """(4, 4) float64 true pose (synthetic data only)."""
+
+
+def depth_to_disk(depth_mm: np.ndarray) -> np.ndarray:
+    """Memory -> disk: (H, W) float NaN-invalid -> float32 with 0 = invalid."""
+    d = np.asarray(depth_mm, dtype=np.float32).copy()
+    d[~np.isfinite(d) | (d <= 0)] = 0.0
+    return d
+
+
+def depth_from_disk(depth_disk: np.ndarray) -> np.ndarray:
+    """Disk -> memory: float32 with 0 = invalid -> float32 with NaN = invalid."""
+    d = np.asarray(depth_disk, dtype=np.float32).copy()
+    d[~np.isfinite(d) | (d <= 0)] = np.nan
+    return d
+
+
+def check_depth_mm(depth_mm: np.ndarray, source: str) -> np.ndarray:
+    """Validate a z-depth map in mm; raise on all-invalid or metre-scaled input.
+
+    depth_mm : (H, W) float, NaN or 0 = invalid. Returns float32 with NaN = invalid.
+    """
+    d = np.asarray(depth_mm, dtype=np.float32)
+    if d.ndim != 2:
+        raise InvalidInputError(source, f"depth must be a 2-D (H, W) map, got shape {d.shape}")
+    d = np.where(np.isfinite(d) & (d > 0), d, np.float32(np.nan)).astype(np.float32)
+    valid = np.isfinite(d)
+    if not valid.any():
+        raise InvalidInputError(source, "depth map has no valid pixel (all 0/NaN/negative)")
+    median = float(np.median(d[valid]))
+    if median < MIN_PLAUSIBLE_MEDIAN_DEPTH_MM:
+        raise DepthUnitsError(
+            source,
+            f"median depth is {median:.4g}, implausibly small for millimetres; the depth "
+            f"looks like metres: multiply by 1000",
+        )
+    return d
+
+
+def _poses_to_text(poses: np.ndarray) -> str:
+    lines = [" ".join(f"{v:.17g}" for v in T.ravel()) for T in poses]
+    return "\n".join(lines) + "\n"
+
+
+def read_poses_txt(path: Path) -> np.ndarray:
+    """Read N x 16 row-major ``T_world_from_cam`` lines; returns (N, 4, 4) float64."""
+    try:
+        arr = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise PoseError(path, f"cannot parse pose file: {exc}") from None
+    if arr.size == 0:
+        raise PoseError(path, "pose file is empty")
+    if arr.shape[1] != 16:
+        raise PoseError(path, f"expected 16 numbers per line (a row-major 4x4), got {arr.shape[1]}")
+    poses = arr.reshape(-1, 4, 4)
+    check_rigid(poses, str(path))
+    return poses
+
+
+class SequenceWriter:
+    """Write a sequence folder atomically, one frame at a time.
+
+    Use as a context manager; the folder appears only when the block exits cleanly::
+
+        with SequenceWriter(out_dir, camera, meta={"source": "sim"}) as w:
+            for frame in frames:
+                w.add(frame)
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        camera: Camera,
+        meta: dict[str, Any] | None = None,
+        camera_mask: np.ndarray | None = None,
+        undistorted: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        self.camera = camera
+        self.meta = dict(meta or {})
+        self.camera_mask = camera_mask
+        self.undistorted = undistorted
+        self._poses: list[np.ndarray] = []
+        self._true: list[np.ndarray | None] = []
+        self._has: dict[str, bool | None] = {"rgb": None, "depth": None, "mask": None}
+        self._ctx = None
+        self._tmp: Path | None = None
+
+    def __enter__(self) -> SequenceWriter:
+        self._ctx = atomic_dir(self.path)
+        self._tmp = self._ctx.__enter__()
+        for sub in ("rgb", "depth", "mask"):
+            (self._tmp / sub).mkdir()
+        return self
+
+    def _present(self, key: str, value: object) -> bool:
+        has = value is not None
+        if self._has[key] is None:
+            self._has[key] = has
+        elif self._has[key] != has:
+            raise InvalidInputError(
+                f"frame {len(self._poses)}", f"{key} present in some frames only"
+            )
+        return has
+
+    def add(self, frame: Frame) -> None:
+        assert self._tmp is not None, "use SequenceWriter as a context manager"
+        i = len(self._poses)
+        name = f"{i:06d}"
+        self._poses.append(check_rigid(frame.T_world_from_cam, f"frame {i} pose"))
+        self._true.append(
+            None
+            if frame.T_world_from_cam_true is None
+            else check_rigid(frame.T_world_from_cam_true, f"frame {i} true pose")
+        )
+        if self._present("rgb", frame.rgb):
+            self.camera.check_image(frame.rgb, f"frame {i} rgb")
+            rgb = np.asarray(frame.rgb)
+            if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+                raise InvalidInputError(
+                    f"frame {i} rgb", f"expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}"
+                )
+            cv2.imwrite(
+                str(self._tmp / "rgb" / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+            )
+        if self._present("depth", frame.depth_mm):
+            self.camera.check_image(frame.depth_mm, f"frame {i} depth")
+            np.save(self._tmp / "depth" / f"{name}.npy", depth_to_disk(frame.depth_mm))
+        if self._present("mask", frame.mask):
+            self.camera.check_image(frame.mask, f"frame {i} mask")
+            cv2.imwrite(
+                str(self._tmp / "mask" / f"{name}.png"),
+                np.where(frame.mask, 255, 0).astype(np.uint8),
+            )
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        assert self._ctx is not None and self._tmp is not None
+        try:
+            if exc_type is None:
+                self._finish(self._tmp)
+        except BaseException:
+            self._ctx.__exit__(*__import__("sys").exc_info())
+            raise
+        self._ctx.__exit__(exc_type, exc, tb)
+
+    def _finish(self, tmp: Path) -> None:
+        n = len(self._poses)
+        if n == 0:
+            raise InvalidInputError(self.path, "a sequence needs at least one frame")
+        has_true = [t is not None for t in self._true]
+        if any(has_true) and not all(has_true):
+            raise InvalidInputError(self.path, "true poses present for some frames only")
+        for sub in ("rgb", "depth", "mask"):
+            if not self._has[sub]:
+                (tmp / sub).rmdir()
+        (tmp / "poses.txt").write_text(_poses_to_text(np.stack(self._poses)))
+        if all(has_true):
+            (tmp / "poses_true.txt").write_text(_poses_to_text(np.stack(self._true)))  # type: ignore[arg-type]
+        if self.camera_mask is not None:
+            self.camera.check_image(self.camera_mask, "camera_mask")
+            cv2.imwrite(
+                str(tmp / "camera_mask.png"), np.where(self.camera_mask, 255, 0).astype(np.uint8)
+            )
+        header = {
+            "format": SEQUENCE_FORMAT,
+            "version": SEQUENCE_VERSION,
+            "num_frames": n,
+            "camera": self.camera.to_dict(),
+            "undistorted": bool(self.undistorted),
+            "units": "mm",
+            "depth_kind": "z",
+            "pose_convention": "T_world_from_cam, OpenCV camera axes (+x right, +y down, +z forward)",
+            "has_rgb": bool(self._has["rgb"]),
+            "has_depth": bool(self._has["depth"]),
+            "has_mask": bool(self._has["mask"]),
+            "has_true_poses": bool(all(has_true)),
+            "has_camera_mask": self.camera_mask is not None,
+            "meta": self.meta,
+        }
+        (tmp / "sequence.json").write_text(json.dumps(header, indent=2) + "\n")
+
+
+def write_sequence(
+    path: str | Path,
+    camera: Camera,
+    frames: list[Frame] | Iterator[Frame],
+    meta: dict[str, Any] | None = None,
+    camera_mask: np.ndarray | None = None,
+    undistorted: bool = False,
+) -> Path:
+    """Write ``frames`` as a sequence folder at ``path`` (atomically); returns ``path``."""
+    with SequenceWriter(path, camera, meta, camera_mask, undistorted) as w:
+        for f in frames:
+            w.add(f)
+    return Path(path)
+
+
+class Sequence:
+    """A sequence folder opened for reading; frames are loaded lazily.
+
+    Raises :class:`InvalidInputError` subclasses naming the file on any malformed part.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        header_path = self.path / "sequence.json"
+        if not header_path.is_file():
+            raise InvalidInputError(self.path, "not a sequence folder: sequence.json is missing")
+        try:
+            header = json.loads(header_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise InvalidInputError(header_path, f"invalid JSON: {exc}") from None
+        if header.get("format") != SEQUENCE_FORMAT:
+            raise FormatVersionError(
+                header_path, f"format is {header.get('format')!r}, expected {SEQUENCE_FORMAT!r}"
+            )
+        if header.get("version") != SEQUENCE_VERSION:
+            raise FormatVersionError(
+                header_path,
+                f"sequence version {header.get('version')!r}; this reader reads version {SEQUENCE_VERSION}",
+            )
+        self.header: dict[str, Any] = header
+        self.meta: dict[str, Any] = header.get("meta", {})
+        self.camera = Camera.from_dict(header["camera"], str(header_path))
+        self.num_frames = int(header["num_frames"])
+        self.undistorted = bool(header.get("undistorted", False))
+        self.poses = read_poses_txt(self.path / "poses.txt")
+        if len(self.poses) != self.num_frames:
+            raise PoseError(
+                self.path / "poses.txt",
+                f"{len(self.poses)} poses but sequence.json declares {self.num_frames} frames",
+            )
+        self.true_poses: np.ndarray | None = None
+        if header.get("has_true_poses"):
+            self.true_poses = read_poses_txt(self.path / "poses_true.txt")
+            if len(self.true_poses) != self.num_frames:
+                raise PoseError(
+                    self.path / "poses_true.txt",
+                    f"{len(self.true_poses)} poses for {self.num_frames} frames",
+                )
+        self.has_rgb = bool(header.get("has_rgb"))
+        self.has_depth = bool(header.get("has_depth"))
+        self.has_mask = bool(header.get("has_mask"))
+        self.camera_mask: np.ndarray | None = None
+        if header.get("has_camera_mask"):
+            self.camera_mask = self._read_png(self.path / "camera_mask.png", gray=True) > 127
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def _read_png(self, path: Path, gray: bool) -> np.ndarray:
+        if not path.is_file():
+            raise InvalidInputError(path, "file is missing")
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+        if img is None:
+            raise InvalidInputError(path, "cannot decode image (corrupt or truncated?)")
+        self.camera.check_image(img, str(path))
+        return img if gray else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def rgb(self, i: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB of frame ``i``."""
+        if not self.has_rgb:
+            raise InvalidInputError(self.path, "sequence has no RGB")
+        return self._read_png(self.path / "rgb" / f"{i:06d}.png", gray=False)
+
+    def depth_mm(self, i: int) -> np.ndarray:
+        """(H, W) float32 z-depth of frame ``i`` in mm, NaN = invalid."""
+        if not self.has_depth:
+            raise InvalidInputError(self.path, "sequence has no depth")
+        path = self.path / "depth" / f"{i:06d}.npy"
+        if not path.is_file():
+            raise InvalidInputError(path, "file is missing")
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            raise InvalidInputError(
+                path, f"cannot read depth (.npy without pickle): {exc}"
+            ) from None
+        if arr.dtype.kind != "f":
+            raise InvalidInputError(path, f"depth must be float32 mm, got dtype {arr.dtype}")
+        self.camera.check_image(arr, str(path))
+        return depth_from_disk(arr)
+
+    def mask(self, i: int) -> np.ndarray | None:
+        """(H, W) bool mask of frame ``i`` (per-frame mask AND camera mask), or None."""
+        m = None
+        if self.has_mask:
+            m = self._read_png(self.path / "mask" / f"{i:06d}.png", gray=True) > 127
+        if self.camera_mask is not None:
+            m = self.camera_mask if m is None else (m & self.camera_mask)
+        return m
+
+    def frame(self, i: int, rgb: bool = True, depth: bool = True) -> Frame:
+        if not 0 <= i < self.num_frames:
+            raise IndexError(f"frame {i} out of range 0..{self.num_frames - 1}")
+        return Frame(
+            index=i,
+            T_world_from_cam=self.poses[i],
+            rgb=self.rgb(i) if (rgb and self.has_rgb) else None,
+            depth_mm=self.depth_mm(i) if (depth and self.has_depth) else None,
+            mask=self.mask(i),
+            T_world_from_cam_true=None if self.true_poses is None else self.true_poses[i],
+        )
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(self.num_frames):
+            yield self.frame(i)

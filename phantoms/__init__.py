@@ -1,0 +1,1 @@
+"""phantoms: see the README and docs/ for what this package does."""

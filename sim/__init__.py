@@ -1,0 +1,1 @@
+"""sim: see the README and docs/ for what this package does."""
