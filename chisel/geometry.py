@@ -11,7 +11,9 @@ Conventions (see docs/conventions.md):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
+import cv2
 import numpy as np
 
 from chisel.errors import CameraError, PoseError
@@ -205,28 +207,55 @@ class Camera:
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         return u, v
 
-    def rays_cam(self) -> np.ndarray:
-        """(H, W, 3) float64 undistorted rays with z = 1 through every pixel centre."""
+    @cached_property
+    def _rays_cam(self) -> np.ndarray:
         u, v = self.pixel_grid()
-        x = (u - self.cx) / self.fx
-        y = (v - self.cy) / self.fy
-        return np.stack([x, y, np.ones_like(x)], axis=-1)
+        if not self.has_distortion:
+            x = (u - self.cx) / self.fx
+            y = (v - self.cy) / self.fy
+        else:
+            # The image is distorted: undo the lens model per pixel (iteratively, to ~1e-9).
+            pts = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :]
+            criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+            und = cv2.undistortPoints(pts, self.K, self.dist, None, None, None, criteria)
+            x = und[:, 0, 0].reshape(u.shape)
+            y = und[:, 0, 1].reshape(u.shape)
+        rays = np.stack([x, y, np.ones_like(x)], axis=-1)
+        rays.setflags(write=False)
+        return rays
+
+    def rays_cam(self) -> np.ndarray:
+        """(H, W, 3) float64 rays with z = 1 through every pixel centre of the raw image.
+
+        With distortion, each ray is the undistorted direction whose distorted projection
+        is the pixel centre; so ``backproject`` and ``project`` are exact inverses.
+        """
+        return self._rays_cam
 
     def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Undistorted pinhole projection.
+        """Project camera-frame points into the raw (distorted) image.
 
         points_cam : (..., 3) mm in the camera frame.
-        Returns (uv, z_mm): uv (..., 2) float64 pixels, z_mm (...,) float64.
+        Returns (uv, z_mm): uv (..., 2) float64 pixels, z_mm (...,) float64. Points
+        behind the camera give meaningless uv; callers mask on ``z_mm > 0``.
         """
         p = np.asarray(points_cam, dtype=np.float64)
         z = p[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = self.fx * p[..., 0] / z + self.cx
-            v = self.fy * p[..., 1] / z + self.cy
-        return np.stack([u, v], axis=-1), z
+            x = p[..., 0] / z
+            y = p[..., 1] / z
+        if self.has_distortion:
+            k1, k2, p1, p2, k3 = self.dist
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            x, y = (
+                x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+            )
+        return np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=-1), z
 
     def backproject(self, depth_mm: np.ndarray) -> np.ndarray:
-        """Back-project a z-depth map to camera-frame points.
+        """Back-project a z-depth map of the raw image to camera-frame points.
 
         depth_mm : (H, W) float32, z-depth in mm, NaN = invalid.
         Returns (H, W, 3) float64 mm, NaN where the depth is invalid.
