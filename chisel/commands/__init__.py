@@ -1,0 +1,1 @@
+"""CLI subcommand modules; each provides ``register(subparsers)`` (see ``chisel.cli``)."""
