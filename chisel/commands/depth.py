@@ -1,0 +1,387 @@
+"""``chisel depth train|finetune|predict|evaluate|export``: the monocular depth network."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import platform
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from chisel.depth import (
+    DEFAULT_CHECKPOINT,
+    DepthNetConfig,
+    DepthPredictor,
+    TrainConfig,
+    check_training_seeds,
+    evaluate_source,
+    export_model,
+    find_sequences,
+    load_checkpoint,
+    load_depth_source,
+    load_frames,
+    predict_sequence,
+    save_checkpoint,
+    split_by_group,
+    train,
+)
+from chisel.depth.data import AugmentConfig, SequenceRef
+from chisel.sequence import Sequence
+
+log = logging.getLogger(__name__)
+
+_HELP = """\
+Monocular depth network (relative z-depth from one RGB frame; the updater solves scale).
+
+  train     train from scratch on rendered sequences (phantom seeds 0-99 are reserved for
+            evaluation and refused; the shipped model uses seeds >= 1000); validation is split by phantom seed
+  finetune  per-patient fine-tuning on the preoperative sequence, whose depth is the CT
+            surface rendered at the tracked poses
+  predict   write a NEW sequence folder: the input's RGB/poses/masks + predicted depth
+  evaluate  median-scaled abs-rel, RMSE (mm), delta<1.25 against sequences' own depth
+  export    TorchScript (.pt) or ONNX (.onnx, needs the onnx package): uint8
+            (B, H, W, 3) RGB -> (B, H, W) float32 relative depth
+"""
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected WIDTHxHEIGHT, e.g. 320x256, got {text!r}"
+        ) from None
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
+    return w, h
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}"
+        ) from None
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _canonical_command(args: argparse.Namespace, names: list[str]) -> str:
+    """The command line that reproduces this run, every option spelled out."""
+    words = ["chisel", "depth", args.depth_command]
+    for name in names:
+        value = getattr(args, name)
+        flag = "--" + name.replace("_", "-")
+        if isinstance(value, bool):
+            if value:
+                words.append(flag)
+        elif value is None:
+            continue
+        elif isinstance(value, list):
+            words += [flag, *(str(v) for v in value)]
+        elif isinstance(value, tuple):
+            if name == "size":
+                words += [flag, f"{value[0]}x{value[1]}"]
+            else:
+                words += [flag, ",".join(str(v) for v in value)]
+        else:
+            words += [flag, str(value)]
+    return shlex.join(words)
+
+
+def _environment() -> dict[str, Any]:
+    return {
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def _seeds(refs: list[SequenceRef]) -> list[int]:
+    return sorted({r.seed for r in refs if r.seed is not None})
+
+
+_TRAIN_OPTS = [
+    "data",
+    "out",
+    "epochs",
+    "batch_size",
+    "lr",
+    "seed",
+    "val_fraction",
+    "frame_step",
+    "size",
+    "widths",
+    "blocks",
+    "max_minutes",
+    "threads",
+    "device",
+    "no_augment",
+]
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    refs = find_sequences(args.data)
+    check_training_seeds(refs)
+    train_refs, val_refs = split_by_group(refs, args.val_fraction, args.seed)
+    log.info(
+        "%d sequences: %d train (seeds %s), %d validation (seeds %s)",
+        len(refs),
+        len(train_refs),
+        _seeds(train_refs),
+        len(val_refs),
+        _seeds(val_refs),
+    )
+    frames = load_frames(train_refs, size=args.size, frame_step=args.frame_step)
+    val_frames = (
+        load_frames(val_refs, size=args.size, frame_step=args.frame_step) if val_refs else None
+    )
+    net_config = DepthNetConfig(
+        widths=args.widths or DepthNetConfig().widths,
+        blocks=args.blocks or DepthNetConfig().blocks,
+    )
+    cfg = TrainConfig(
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        augment=None if args.no_augment else AugmentConfig(),
+        max_minutes=args.max_minutes,
+        num_threads=args.threads,
+        device=args.device,
+    )
+    result = train(frames, cfg, net_config, val_frames=val_frames, progress=True)
+    info = {
+        "kind": "train",
+        "command": _canonical_command(args, _TRAIN_OPTS),
+        "train_phantom_seeds": _seeds(train_refs),
+        "val_phantom_seeds": _seeds(val_refs),
+        "train_sequences": [str(r.path) for r in train_refs],
+        "val_sequences": [str(r.path) for r in val_refs],
+        "num_train_frames": len(frames),
+        "num_val_frames": 0 if val_frames is None else len(val_frames),
+        "image_size": [int(frames.rgb.shape[2]), int(frames.rgb.shape[1])],
+        "train_config": cfg.to_dict(),
+        "val_metrics": None if result.val_metrics is None else result.val_metrics.to_dict(),
+        "best_epoch": result.best_epoch,
+        "stopped_early": result.stopped_early,
+        "train_seconds": round(result.seconds, 1),
+        "history": result.history,
+        "environment": _environment(),
+    }
+    save_checkpoint(out, result.net, info)
+    sys.stdout.write(
+        json.dumps(
+            {
+                "checkpoint": str(out),
+                "val_metrics": info["val_metrics"],
+                "train_seconds": info["train_seconds"],
+            }
+        )
+        + "\n"
+    )
+    return 0
+
+
+_FINETUNE_OPTS = [
+    "checkpoint",
+    "sequence",
+    "out",
+    "epochs",
+    "batch_size",
+    "lr",
+    "seed",
+    "frame_step",
+    "threads",
+    "device",
+    "no_augment",
+]
+
+
+def _cmd_finetune(args: argparse.Namespace) -> int:
+    parent = Path(args.checkpoint)
+    net, parent_info = load_checkpoint(parent)
+    refs = [SequenceRef(Path(p), None) for p in args.sequence]
+    frames = load_frames(refs, size=None, frame_step=args.frame_step)
+    cfg = TrainConfig.finetune_defaults(
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        augment=None if args.no_augment else AugmentConfig(),
+        num_threads=args.threads,
+        device=args.device,
+    )
+    result = train(frames, cfg, init=net, progress=True)
+    info = {
+        "kind": "finetune",
+        "command": _canonical_command(args, _FINETUNE_OPTS),
+        "parent_checkpoint": str(parent),
+        "parent_sha256": _sha256(parent),
+        "parent_info": {k: v for k, v in parent_info.items() if k != "history"},
+        "finetune_sequences": [str(r.path) for r in refs],
+        "num_train_frames": len(frames),
+        "train_config": cfg.to_dict(),
+        "train_seconds": round(result.seconds, 1),
+        "history": result.history,
+        "environment": _environment(),
+    }
+    save_checkpoint(Path(args.out), result.net, info)
+    sys.stdout.write(
+        json.dumps(
+            {
+                "checkpoint": args.out,
+                "train_seconds": info["train_seconds"],
+                "final_loss": result.history[-1]["loss"],
+            }
+        )
+        + "\n"
+    )
+    return 0
+
+
+def _cmd_predict(args: argparse.Namespace) -> int:
+    ck = Path(args.checkpoint)
+    source = load_depth_source(ck, device=args.device)
+    seq = Sequence(args.sequence)
+    meta = {"model": str(ck), "model_sha256": _sha256(ck), "relative_depth": True}
+    predict_sequence(source, seq, args.out, meta=meta, progress=True)
+    sys.stdout.write(json.dumps({"sequence": args.out, "frames": len(seq)}) + "\n")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    source = load_depth_source(args.checkpoint, device=args.device)
+    refs = find_sequences(args.data)
+    metrics = evaluate_source(source, [Sequence(r.path) for r in refs])
+    doc = {"checkpoint": str(args.checkpoint), "sequences": len(refs), **metrics.to_dict()}
+    sys.stdout.write(json.dumps(doc) + "\n")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    net, _ = load_checkpoint(args.checkpoint)
+    out = export_model(DepthPredictor(net), args.out)
+    sys.stdout.write(json.dumps({"exported": str(out)}) + "\n")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``chisel depth ...`` to the top-level parser."""
+    p = subparsers.add_parser(
+        "depth",
+        help="monocular depth network: train, finetune, predict, evaluate, export",
+        description=_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = p.add_subparsers(dest="depth_command", metavar="SUBCOMMAND", required=True)
+
+    def common(q: argparse.ArgumentParser) -> None:
+        q.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N")
+
+    def training(q: argparse.ArgumentParser, epochs: int, lr: float) -> None:
+        q.add_argument(
+            "--epochs", type=int, default=epochs, help=f"passes over the frames (default {epochs})"
+        )
+        q.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
+        q.add_argument("--lr", type=float, default=lr, help=f"peak learning rate (default {lr:g})")
+        q.add_argument(
+            "--seed", type=int, default=0, help="seeds init, split, shuffling, augmentation"
+        )
+        q.add_argument("--frame-step", type=int, default=1, help="use every N-th frame (default 1)")
+        q.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+        q.add_argument("--no-augment", action="store_true", help="no flips / colour jitter")
+        common(q)
+
+    t = sub.add_parser("train", help="train from scratch on rendered sequences")
+    t.add_argument(
+        "--data",
+        nargs="+",
+        required=True,
+        help="dataset folders (dataset.json), dataset.json files or sequence folders",
+    )
+    t.add_argument(
+        "--out", required=True, help="checkpoint to write (.pt; a .json sidecar beside it)"
+    )
+    training(t, epochs=30, lr=2e-3)
+    t.add_argument(
+        "--val-fraction",
+        type=float,
+        default=0.15,
+        help="fraction of phantom seeds held out for validation (default 0.15)",
+    )
+    t.add_argument(
+        "--size",
+        type=_size,
+        default=None,
+        help="train at WIDTHxHEIGHT (default: the sequences' own size)",
+    )
+    t.add_argument("--widths", type=_ints, default=None, help="encoder widths, e.g. 16,24,32,48,64")
+    t.add_argument(
+        "--blocks", type=_ints, default=None, help="residual blocks per stage, e.g. 1,1,1,2,2"
+    )
+    t.add_argument(
+        "--max-minutes",
+        type=float,
+        default=None,
+        help="stop after the epoch that passes this wall time (safety cap)",
+    )
+    t.set_defaults(func=_cmd_train)
+
+    f = sub.add_parser("finetune", help="fine-tune on a preoperative sequence (depth = CT render)")
+    f.add_argument("--checkpoint", required=True, help="checkpoint to start from (.pt)")
+    f.add_argument(
+        "--sequence",
+        nargs="+",
+        required=True,
+        help="preoperative sequence folder(s) with RGB and depth (CT surface renders)",
+    )
+    f.add_argument("--out", required=True, help="fine-tuned checkpoint to write (.pt)")
+    training(f, epochs=3, lr=1e-4)
+    f.set_defaults(func=_cmd_finetune)
+
+    pr = sub.add_parser("predict", help="write a new sequence with predicted depth")
+    pr.add_argument(
+        "--checkpoint",
+        default=str(DEFAULT_CHECKPOINT),
+        help="checkpoint (.pt) or TorchScript export (default: the shipped model)",
+    )
+    pr.add_argument("--sequence", required=True, help="input sequence folder (needs RGB)")
+    pr.add_argument("--out", required=True, help="new sequence folder to write (atomically)")
+    common(pr)
+    pr.set_defaults(func=_cmd_predict)
+
+    e = sub.add_parser("evaluate", help="median-scaled metrics against sequences' own depth")
+    e.add_argument(
+        "--checkpoint",
+        default=str(DEFAULT_CHECKPOINT),
+        help="checkpoint (.pt) or TorchScript export (default: the shipped model)",
+    )
+    e.add_argument(
+        "--data",
+        nargs="+",
+        required=True,
+        help="dataset folders (dataset.json), dataset.json files or sequence folders",
+    )
+    common(e)
+    e.set_defaults(func=_cmd_evaluate)
+
+    x = sub.add_parser("export", help="export to TorchScript (.pt) or ONNX (.onnx)")
+    x.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT), help="checkpoint (.pt)")
+    x.add_argument("--out", required=True, help="model.pt (TorchScript) or model.onnx")
+    x.set_defaults(func=_cmd_export)

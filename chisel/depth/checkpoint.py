@@ -1,0 +1,131 @@
+"""Depth-network checkpoints: a state_dict plus a JSON-able config, loadable without pickle.
+
+File layout (``torch.save`` of a plain dict, read with ``torch.load(weights_only=True)``)::
+
+    {"format": "endoscopic-chisel/depth-checkpoint", "version": 1,
+     "config": DepthNetConfig.to_dict(), "state_dict": {name: tensor},
+     "info": {...}}   # JSON-able: training command, seeds, metrics, parent checkpoint
+
+Beside ``X.pt`` a human-readable ``X.json`` carries the same config and info.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from chisel.atomic import atomic_path, atomic_write_text
+from chisel.depth.model import DepthNet, DepthNetConfig
+from chisel.errors import FormatVersionError, InvalidInputError
+
+CHECKPOINT_FORMAT = "endoscopic-chisel/depth-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+class CheckpointError(InvalidInputError):
+    """A depth checkpoint is unreadable or does not match the network architecture."""
+
+
+def _json_able(info: dict[str, Any], source: str) -> dict[str, Any]:
+    try:
+        return json.loads(json.dumps(info))
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(source, f"checkpoint info must be JSON-able: {exc}") from None
+
+
+def save_checkpoint(path: str | Path, net: DepthNet, info: dict[str, Any] | None = None) -> Path:
+    """Write ``net`` to ``path`` (atomically) and a ``.json`` sidecar; returns ``path``.
+
+    info : JSON-able dict (training command, seeds, metrics, ...).
+    """
+    path = Path(path)
+    if path.suffix != ".pt":
+        raise InvalidInputError(path, f"checkpoint file must end in .pt, got {path.suffix!r}")
+    info = _json_able(dict(info or {}), str(path))
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "config": net.config.to_dict(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
+        "info": info,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    sidecar = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "weights": path.name,
+        "num_parameters": int(sum(p.numel() for p in net.parameters())),
+        "config": net.config.to_dict(),
+        "info": info,
+    }
+    atomic_write_text(path.with_suffix(".json"), json.dumps(sidecar, indent=2) + "\n")
+    return path
+
+
+def _describe_mismatch(
+    expected: dict[str, torch.Tensor], got: dict[str, torch.Tensor]
+) -> list[str]:
+    problems = []
+    missing = sorted(set(expected) - set(got))
+    unexpected = sorted(set(got) - set(expected))
+    if missing:
+        problems.append(f"{len(missing)} missing tensor(s), e.g. {missing[:3]}")
+    if unexpected:
+        problems.append(f"{len(unexpected)} unexpected tensor(s), e.g. {unexpected[:3]}")
+    for k in sorted(set(expected) & set(got)):
+        if tuple(expected[k].shape) != tuple(got[k].shape):
+            problems.append(
+                f"{k}: expected shape {tuple(expected[k].shape)}, got {tuple(got[k].shape)}"
+            )
+    return problems
+
+
+def load_checkpoint(
+    path: str | Path, config: DepthNetConfig | None = None
+) -> tuple[DepthNet, dict[str, Any]]:
+    """Load a checkpoint into a fresh :class:`DepthNet` (eval mode, CPU).
+
+    config : build this architecture instead of the stored one (e.g. to check that a
+    checkpoint fits an expected network); a mismatch raises :class:`CheckpointError`.
+    Returns ``(net, info)``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(path, "checkpoint file does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a foreign/corrupt file
+        raise CheckpointError(
+            path,
+            f"cannot read as a depth checkpoint with weights_only=True ({type(exc).__name__}: "
+            f"{str(exc).splitlines()[0] if str(exc) else ''}); an exported TorchScript model "
+            f"is loaded with chisel.depth.load_depth_source instead",
+        ) from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        fmt = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise CheckpointError(path, f"format is {fmt!r}, expected {CHECKPOINT_FORMAT!r}")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise FormatVersionError(
+            path,
+            f"depth checkpoint version {payload.get('version')!r}; this reader reads "
+            f"version {CHECKPOINT_VERSION}",
+        )
+    stored = DepthNetConfig.from_dict(payload.get("config", {}), f"{path} config")
+    net = DepthNet(config or stored)
+    state = payload.get("state_dict")
+    if not isinstance(state, dict):
+        raise CheckpointError(path, "no state_dict in checkpoint")
+    problems = _describe_mismatch(net.state_dict(), state)
+    if problems:
+        raise CheckpointError(
+            path,
+            "weights do not match the architecture "
+            f"{(config or stored).to_dict()}: " + "; ".join(problems),
+        )
+    net.load_state_dict(state, strict=True)
+    net.eval()
+    return net, dict(payload.get("info", {}))
