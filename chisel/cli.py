@@ -15,6 +15,7 @@ from chisel.errors import ChiselError
 
 _COMMAND_MODULES: list[str] = [
     # "module.path" providing register(subparsers: argparse._SubParsersAction) -> None
+    "chisel.commands.importers",
     "chisel.commands.depth",
 ]
 

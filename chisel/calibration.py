@@ -1,0 +1,227 @@
+"""Camera calibration files -> :class:`chisel.geometry.Camera`.
+
+Formats read (see docs/real-data.md):
+
+- OpenCV ``cv2.FileStorage`` YAML or XML, as written by OpenCV's calibration samples:
+  ``camera_matrix`` (3x3), ``distortion_coefficients`` (1x4, 1x5, or 1x8/12/14 whose
+  extra terms are zero), optional ``image_width`` / ``image_height``.
+- ROS ``camera_info`` YAML (no ``%YAML:1.0`` header): the same keys, matrices as
+  ``{rows, cols, data}`` maps.
+- JSON: ``{"width", "height", "K": 3x3 or "fx", "fy", "cx", "cy", "dist": [k1, k2, p1,
+  p2, k3]}`` (the ``camera`` block of a sequence's ``sequence.json`` is such a file).
+
+The calibration must be for the resolution of the frames: a file that states its image
+size is checked against the frames; one that does not must at least put the principal
+point near the image centre. ``rescale=True`` scales ``K`` to frames of the same aspect
+ratio at another resolution (distortion coefficients are resolution-free).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from chisel.errors import CameraError
+from chisel.geometry import Camera
+
+_K_KEYS = ("camera_matrix", "K", "cameraMatrix", "intrinsic_matrix")
+_DIST_KEYS = ("distortion_coefficients", "dist", "D", "distCoeffs", "dist_coeffs")
+
+MAX_PRINCIPAL_OFFSET = 0.2
+"""Largest |cx - centre| / width (and |cy - centre| / height) accepted when the file does
+not state its image size; farther means the intrinsics are for another resolution."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Intrinsics and distortion as read from a file, before they meet the frames."""
+
+    K: np.ndarray
+    """(3, 3) float64 pinhole intrinsics, pixels."""
+    dist: np.ndarray
+    """(5,) float64 OpenCV k1, k2, p1, p2, k3."""
+    size: tuple[int, int] | None
+    """(width, height) in pixels the calibration was made at, or None if not stated."""
+    source: str
+    """The file it came from (for error messages)."""
+
+    def camera_for(self, width: int, height: int, rescale: bool = False) -> Camera:
+        """The :class:`Camera` for frames of ``width`` x ``height`` pixels.
+
+        Raises :class:`CameraError` if the calibration is for another resolution (unless
+        ``rescale`` and the aspect ratio matches) or its principal point is implausible.
+        """
+        K = self.K.copy()
+        if self.size is not None and self.size != (width, height):
+            cw, ch = self.size
+            same_aspect = abs(cw * height - ch * width) <= max(cw, width) // 100
+            if not (rescale and same_aspect):
+                hint = (
+                    " (pass rescale / --rescale-intrinsics to scale K)"
+                    if same_aspect
+                    else " (different aspect ratio: cropped frames need a new calibration)"
+                )
+                raise CameraError(
+                    self.source,
+                    f"calibration is for {cw}x{ch} images but the frames are "
+                    f"{width}x{height}{hint}",
+                )
+            # Pixel centres at integer coordinates: x_new + 0.5 = s (x_old + 0.5).
+            sx, sy = width / cw, height / ch
+            K[0, 0] *= sx
+            K[1, 1] *= sy
+            K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+            K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        else:
+            off_x = abs(K[0, 2] - (width - 1) / 2.0) / width
+            off_y = abs(K[1, 2] - (height - 1) / 2.0) / height
+            if off_x > MAX_PRINCIPAL_OFFSET or off_y > MAX_PRINCIPAL_OFFSET:
+                raise CameraError(
+                    self.source,
+                    f"principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) is far from the centre "
+                    f"of the {width}x{height} frames ({(width - 1) / 2:.1f}, "
+                    f"{(height - 1) / 2:.1f}): are these intrinsics for another resolution?",
+                )
+        try:
+            return Camera(width, height, K, self.dist)
+        except CameraError as exc:
+            raise CameraError(self.source, exc.problem) from None
+
+
+def _dist5(values: np.ndarray, source: str) -> np.ndarray:
+    d = np.asarray(values, dtype=np.float64).ravel()
+    if d.size == 4:
+        d = np.append(d, 0.0)
+    elif d.size in (8, 12, 14):
+        if np.any(d[5:] != 0.0):
+            raise CameraError(
+                source,
+                f"distortion has {d.size} coefficients with non-zero rational/thin-prism "
+                f"terms {d[5:].tolist()}; only the 5-term model (k1, k2, p1, p2, k3) is supported",
+            )
+        d = d[:5]
+    elif d.size != 5:
+        raise CameraError(
+            source, f"expected 4 or 5 distortion coefficients, got {d.size}: {d.tolist()}"
+        )
+    if not np.all(np.isfinite(d)):
+        raise CameraError(source, f"distortion coefficients are not finite: {d.tolist()}")
+    return d
+
+
+def _matrix3(values: object, source: str) -> np.ndarray:
+    K = np.asarray(values, dtype=np.float64)
+    if K.size != 9:
+        raise CameraError(source, f"camera matrix must have 9 entries, got shape {K.shape}")
+    return K.reshape(3, 3)
+
+
+def _from_mapping(d: dict, source: str) -> Calibration:
+    """Shared by JSON and ROS-YAML: keys as in the module docstring."""
+
+    def unwrap(v: object) -> object:  # ROS/OpenCV-YAML style {rows, cols, data}
+        return v["data"] if isinstance(v, dict) and "data" in v else v
+
+    k_key = next((k for k in _K_KEYS if k in d), None)
+    if k_key is not None:
+        K = _matrix3(unwrap(d[k_key]), source)
+    elif all(k in d for k in ("fx", "fy", "cx", "cy")):
+        K = np.array(
+            [[d["fx"], 0.0, d["cx"]], [0.0, d["fy"], d["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+    else:
+        raise CameraError(
+            source, f"no camera matrix: expected one of {list(_K_KEYS)} or fx, fy, cx, cy"
+        )
+    d_key = next((k for k in _DIST_KEYS if k in d), None)
+    dist = _dist5(unwrap(d[d_key]), source) if d_key is not None else np.zeros(5)
+    w = d.get("width", d.get("image_width"))
+    h = d.get("height", d.get("image_height"))
+    size = (int(w), int(h)) if w is not None and h is not None else None
+    return Calibration(K, dist, size, source)
+
+
+def _read_filestorage(path: Path) -> Calibration | None:
+    """OpenCV FileStorage YAML/XML, or None if OpenCV cannot read a matrix from the file."""
+    source = str(path)
+    try:
+        fs = cv2.FileStorage(source, cv2.FILE_STORAGE_READ)
+    except cv2.error:
+        return None
+    try:
+        if not fs.isOpened():
+            return None
+
+        def mat(keys: tuple[str, ...]) -> np.ndarray | None:
+            for k in keys:
+                node = fs.getNode(k)
+                if not node.empty():
+                    # A ROS {rows, cols, data} map is not an opencv-matrix: mat() asserts.
+                    return node.mat()
+            return None
+
+        K_mat = mat(_K_KEYS)
+        if K_mat is None:
+            return None
+        K = _matrix3(K_mat, source)
+        d_mat = mat(_DIST_KEYS)
+        dist = np.zeros(5) if d_mat is None else _dist5(d_mat, source)
+        wn, hn = fs.getNode("image_width"), fs.getNode("image_height")
+        size = None if wn.empty() or hn.empty() else (int(wn.real()), int(hn.real()))
+        return Calibration(K, dist, size, source)
+    except cv2.error:
+        return None
+    finally:
+        fs.release()
+
+
+def read_calibration(path: str | Path) -> Calibration:
+    """Read intrinsics and distortion from an OpenCV YAML/XML, ROS YAML or JSON file."""
+    path = Path(path)
+    source = str(path)
+    if not path.is_file():
+        raise CameraError(source, "calibration file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        try:
+            data = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise CameraError(source, f"invalid JSON: {exc}") from None
+        if isinstance(data, dict) and isinstance(data.get("camera"), dict):
+            data = data["camera"]  # a sequence.json
+        if not isinstance(data, dict):
+            raise CameraError(source, "expected a JSON object")
+        return _from_mapping(data, source)
+    if suffix not in (".yaml", ".yml", ".xml"):
+        raise CameraError(
+            source, f"unknown calibration format {suffix!r}: use .yaml, .xml or .json"
+        )
+    calib = _read_filestorage(path)
+    if calib is not None:
+        return calib
+    if suffix == ".xml":
+        raise CameraError(source, "OpenCV cannot read this XML file or it has no camera_matrix")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise CameraError(source, f"invalid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise CameraError(source, "expected a YAML mapping with camera_matrix")
+    return _from_mapping(data, source)
+
+
+def write_opencv_calibration(path: str | Path, camera: Camera) -> None:
+    """Write ``camera`` as an OpenCV FileStorage YAML/XML (the format OpenCV's samples write)."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("image_width", int(camera.width))
+        fs.write("image_height", int(camera.height))
+        fs.write("camera_matrix", np.asarray(camera.K, dtype=np.float64))
+        fs.write("distortion_coefficients", np.asarray(camera.dist, dtype=np.float64)[None, :])
+    finally:
+        fs.release()
