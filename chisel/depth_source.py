@@ -1,0 +1,133 @@
+"""Pluggable depth sources: where the updater gets the new depth M_{t+1} of a frame.
+
+The protocol
+------------
+A depth source is **any callable** ``source(frame) -> depth``:
+
+* ``frame`` is a :class:`chisel.sequence.Frame` (``rgb`` (H, W, 3) uint8 when the
+  sequence has images, ``depth_mm`` when it has depth, ``T_world_from_cam`` the tracked
+  pose, ``mask`` the usable pixels, ``index`` the frame number);
+* it returns an (H, W) float32 z-depth map on the frame's raw pixel grid, NaN (or <= 0)
+  = invalid. The depth may be **up to an unknown per-frame scale** (a monocular
+  network); the updater solves the scale against the model's render.
+
+An optional attribute ``is_metric: bool`` declares the depth to be in millimetres
+(ground truth, a depth sensor). Metric depth is checked for plausible units
+(:func:`chisel.sequence.check_depth_mm` refuses depth that looks like metres); the scale
+is still solved robustly so small calibration errors are absorbed. Sources without the
+attribute are treated as scale-free.
+
+Built-ins: :class:`GroundTruthDepth` (the sequence's own depth), :class:`SequenceDepth`
+(depth maps of another sequence folder with the same frames), :class:`CallableDepth`
+(wrap any user callable), and ``network:CHECKPOINT`` through ``chisel.depth`` (loaded
+lazily; provides ``chisel.depth.load_depth_source(checkpoint) -> DepthSource``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from chisel.errors import InvalidInputError
+from chisel.sequence import Frame, Sequence
+
+
+@runtime_checkable
+class DepthSource(Protocol):
+    """``(frame: Frame) -> (H, W) float32 depth, NaN = invalid, possibly up to scale``."""
+
+    def __call__(self, frame: Frame) -> np.ndarray: ...
+
+
+class GroundTruthDepth:
+    """The frame's own depth (``frame.depth_mm``): ground truth for synthetic data, mm."""
+
+    is_metric = True
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        if frame.depth_mm is None:
+            raise InvalidInputError(
+                f"frame {frame.index}", "depth source 'gt' needs depth in the sequence, it has none"
+            )
+        return frame.depth_mm
+
+
+class SequenceDepth:
+    """Depth maps from another sequence folder with the same frame count (mm)."""
+
+    is_metric = True
+
+    def __init__(self, path: str | Path, expected_frames: int | None = None) -> None:
+        self.sequence = Sequence(path)
+        if not self.sequence.has_depth:
+            raise InvalidInputError(path, "depth-source sequence has no depth maps")
+        if expected_frames is not None and len(self.sequence) != expected_frames:
+            raise InvalidInputError(
+                path,
+                f"depth-source sequence has {len(self.sequence)} frames, the updated "
+                f"sequence has {expected_frames}",
+            )
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        return self.sequence.depth_mm(frame.index)
+
+
+class CallableDepth:
+    """Wrap a user callable ``fn(frame) -> depth``; ``metric`` declares millimetres."""
+
+    def __init__(self, fn: Callable[[Frame], np.ndarray], metric: bool = False) -> None:
+        if not callable(fn):
+            raise InvalidInputError("depth_source", f"expected a callable, got {type(fn).__name__}")
+        self.fn = fn
+        self.is_metric = bool(metric)
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        return self.fn(frame)
+
+
+def is_metric(source: Callable[[Frame], np.ndarray]) -> bool:
+    """True if ``source`` declares millimetre depth (``is_metric`` attribute)."""
+    return bool(getattr(source, "is_metric", False))
+
+
+def load_network_source(checkpoint: str | Path) -> DepthSource:
+    """Load the project's depth network (``chisel.depth``) as a depth source."""
+    try:
+        depth_mod = importlib.import_module("chisel.depth")
+    except ModuleNotFoundError as exc:
+        if exc.name not in ("chisel.depth", "chisel"):
+            raise
+        raise InvalidInputError(
+            "--depth-source",
+            "network depth needs the chisel.depth package, which is not available in "
+            "this installation; use 'gt' or 'sequence:PATH', or pass a callable from Python",
+        ) from None
+    loader = getattr(depth_mod, "load_depth_source", None)
+    if loader is None:
+        raise InvalidInputError(
+            "--depth-source",
+            "chisel.depth provides no load_depth_source(checkpoint) -> DepthSource function",
+        )
+    return loader(Path(checkpoint))
+
+
+def depth_source_from_spec(spec: str, sequence: Sequence | None = None) -> DepthSource:
+    """Parse ``gt`` | ``sequence:PATH`` | ``network:CHECKPOINT`` into a depth source."""
+    if spec == "gt":
+        if sequence is not None and not sequence.has_depth:
+            raise InvalidInputError(
+                sequence.path, "--depth-source gt needs depth maps in the sequence, it has none"
+            )
+        return GroundTruthDepth()
+    kind, sep, arg = spec.partition(":")
+    if sep and arg and kind == "sequence":
+        return SequenceDepth(arg, None if sequence is None else len(sequence))
+    if sep and arg and kind == "network":
+        return load_network_source(arg)
+    raise InvalidInputError(
+        "--depth-source", f"expected 'gt', 'sequence:PATH' or 'network:CHECKPOINT', got {spec!r}"
+    )

@@ -1,0 +1,234 @@
+"""The *model* on-disk contract (version 1): a dense TSDF grid with weights.
+
+A model is what the updater keeps current: truncated signed distances ``tsdf`` normalised
+by the truncation (+1 = free space in front of the surface, -1 = at least one truncation
+behind it), their fusion weights ``weight`` (0 = never observed), optional colour, and
+the grid's placement ``T_world_from_voxel`` (voxel index -> voxel *centre* in world mm).
+
+On disk a model is one ``.npz`` file (read with ``allow_pickle=False``)::
+
+    format              str  "endoscopic-chisel/model"
+    version             int  1
+    tsdf                (X, Y, Z) float32, normalised signed distance in [-1, 1]
+    weight              (X, Y, Z) float32, accumulated fusion weight, >= 0
+    color               (X, Y, Z, 3) uint8 RGB (optional; absent = no colour)
+    T_world_from_voxel  (4, 4) float64, axis-aligned, scaled by the voxel size, mm
+    voxel_size_mm       float64 scalar
+    trunc_mm            float64 scalar
+    step                int64 scalar, surgical steps applied since the preop model (0 = preop)
+
+Files are written atomically (:func:`chisel.atomic.atomic_path`): a failed save never
+leaves a half-written model behind.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from chisel.atomic import atomic_path
+from chisel.errors import FormatVersionError, InvalidInputError
+
+MODEL_FORMAT = "endoscopic-chisel/model"
+MODEL_VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class TsdfModel:
+    """A dense TSDF volume in world millimetres.
+
+    The dataclass is frozen (fields cannot be rebound) but its arrays are updated in place
+    by :mod:`chisel.fusion`; use :meth:`copy` to keep a snapshot.
+    """
+
+    tsdf: np.ndarray
+    """(X, Y, Z) float32, signed distance / ``trunc_mm`` clipped to [-1, 1]; + = in front."""
+    weight: np.ndarray
+    """(X, Y, Z) float32, accumulated fusion weight; 0 = unobserved."""
+    T_world_from_voxel: np.ndarray
+    """(4, 4) float64, voxel index (i, j, k) -> voxel centre in world mm (axis-aligned)."""
+    voxel_size_mm: float
+    """Edge length of a voxel, mm."""
+    trunc_mm: float
+    """Truncation distance of the signed distance, mm (``tsdf`` = d / trunc_mm)."""
+    color: np.ndarray | None = None
+    """(X, Y, Z, 3) uint8 RGB averaged with the same weights, or None."""
+    step: int = 0
+    """Number of surgical steps applied since the preoperative model (0 = preop)."""
+
+    def __post_init__(self) -> None:
+        tsdf = np.asarray(self.tsdf)
+        weight = np.asarray(self.weight)
+        T = np.asarray(self.T_world_from_voxel, dtype=np.float64)
+        if tsdf.ndim != 3 or tsdf.dtype != np.float32:
+            raise InvalidInputError(
+                "tsdf", f"expected (X, Y, Z) float32, got {tsdf.shape} {tsdf.dtype}"
+            )
+        if weight.shape != tsdf.shape or weight.dtype != np.float32:
+            raise InvalidInputError(
+                "weight", f"expected {tsdf.shape} float32, got {weight.shape} {weight.dtype}"
+            )
+        if not (self.voxel_size_mm > 0 and np.isfinite(self.voxel_size_mm)):
+            raise InvalidInputError("voxel_size_mm", f"must be > 0, got {self.voxel_size_mm}")
+        if not (self.trunc_mm >= self.voxel_size_mm and np.isfinite(self.trunc_mm)):
+            raise InvalidInputError(
+                "trunc_mm",
+                f"must be >= voxel_size_mm ({self.voxel_size_mm}), got {self.trunc_mm}",
+            )
+        expected = np.diag([self.voxel_size_mm] * 3 + [1.0])
+        expected[:3, 3] = T[:3, 3] if T.shape == (4, 4) else 0.0
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T, expected):
+            raise InvalidInputError(
+                "T_world_from_voxel",
+                "expected an axis-aligned (4, 4) transform scaled by voxel_size_mm "
+                f"({self.voxel_size_mm}), got {T.tolist()}",
+            )
+        object.__setattr__(self, "T_world_from_voxel", T)
+        if self.color is not None:
+            c = np.asarray(self.color)
+            if c.shape != (*tsdf.shape, 3) or c.dtype != np.uint8:
+                raise InvalidInputError(
+                    "color", f"expected {(*tsdf.shape, 3)} uint8, got {c.shape} {c.dtype}"
+                )
+        object.__setattr__(self, "step", int(self.step))
+
+    # ----------------------------------------------------------------- construction
+    @classmethod
+    def empty(
+        cls,
+        bounds_min_mm: np.ndarray,
+        bounds_max_mm: np.ndarray,
+        voxel_size_mm: float,
+        trunc_mm: float,
+        with_color: bool = False,
+    ) -> TsdfModel:
+        """An unobserved model (tsdf = 1, weight = 0) covering a world box.
+
+        bounds_min_mm, bounds_max_mm : (3,) float, world mm; the grid covers the box with
+        voxel centres starting at ``bounds_min_mm``.
+        """
+        lo = np.asarray(bounds_min_mm, dtype=np.float64)
+        hi = np.asarray(bounds_max_mm, dtype=np.float64)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite([lo, hi])):
+            raise InvalidInputError(
+                "bounds_mm", f"expected two finite (3,) corners, got {lo}, {hi}"
+            )
+        if np.any(hi <= lo):
+            raise InvalidInputError("bounds_mm", f"empty box: min {lo.tolist()} max {hi.tolist()}")
+        if not voxel_size_mm > 0:
+            raise InvalidInputError("voxel_size_mm", f"must be > 0, got {voxel_size_mm}")
+        dims = np.ceil((hi - lo) / voxel_size_mm).astype(np.int64) + 1
+        n = int(np.prod(dims))
+        if n > 400_000_000:
+            raise InvalidInputError(
+                "voxel_size_mm",
+                f"grid of {dims.tolist()} voxels ({n / 1e6:.0f} M) is too large; "
+                "use larger voxels or a smaller region",
+            )
+        T = np.diag([voxel_size_mm] * 3 + [1.0])
+        T[:3, 3] = lo
+        shape = tuple(int(d) for d in dims)
+        return cls(
+            tsdf=np.ones(shape, dtype=np.float32),
+            weight=np.zeros(shape, dtype=np.float32),
+            T_world_from_voxel=T,
+            voxel_size_mm=float(voxel_size_mm),
+            trunc_mm=float(trunc_mm),
+            color=np.zeros((*shape, 3), dtype=np.uint8) if with_color else None,
+        )
+
+    def copy(self) -> TsdfModel:
+        """A deep copy (arrays copied)."""
+        return replace(
+            self,
+            tsdf=self.tsdf.copy(),
+            weight=self.weight.copy(),
+            color=None if self.color is None else self.color.copy(),
+        )
+
+    # ----------------------------------------------------------------- geometry
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(s) for s in self.tsdf.shape)  # type: ignore[return-value]
+
+    @property
+    def origin_mm(self) -> np.ndarray:
+        """(3,) float64 world position of voxel (0, 0, 0)'s centre, mm."""
+        return self.T_world_from_voxel[:3, 3].copy()
+
+    @property
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """World box spanned by the voxel centres: ((3,), (3,)) float64 mm."""
+        lo = self.origin_mm
+        return lo, lo + (np.array(self.shape) - 1) * self.voxel_size_mm
+
+    def contains_mm(self, point_mm: np.ndarray) -> bool:
+        """True if a world point (3,) mm lies inside the grid's box."""
+        lo, hi = self.bounds_mm
+        p = np.asarray(point_mm, dtype=np.float64)
+        return bool(np.all(p >= lo - 1e-9) and np.all(p <= hi + 1e-9))
+
+    def distance_mm(self) -> np.ndarray:
+        """(X, Y, Z) float32 truncated signed distance in mm (tsdf * trunc_mm)."""
+        return self.tsdf * np.float32(self.trunc_mm)
+
+    # ----------------------------------------------------------------- I/O
+    def save(self, path: str | Path) -> Path:
+        """Write the model to ``path`` (.npz) atomically; returns ``path``."""
+        path = Path(path)
+        arrays = {
+            "format": np.array(MODEL_FORMAT),
+            "version": np.array(MODEL_VERSION, dtype=np.int64),
+            "tsdf": self.tsdf,
+            "weight": self.weight,
+            "T_world_from_voxel": self.T_world_from_voxel,
+            "voxel_size_mm": np.array(self.voxel_size_mm, dtype=np.float64),
+            "trunc_mm": np.array(self.trunc_mm, dtype=np.float64),
+            "step": np.array(self.step, dtype=np.int64),
+        }
+        if self.color is not None:
+            arrays["color"] = self.color
+        with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+            # np.savez on a file handle: it would append ".npz" to a bare path name.
+            np.savez_compressed(fh, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> TsdfModel:
+        """Read a model file; raises :class:`FormatVersionError` / :class:`InvalidInputError`."""
+        path = Path(path)
+        if not path.is_file():
+            raise InvalidInputError(path, "model file is missing")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
+            raise InvalidInputError(
+                path, f"cannot read model (.npz without pickle): {exc}"
+            ) from None
+        fmt = str(data.get("format", ""))
+        if fmt != MODEL_FORMAT:
+            raise FormatVersionError(path, f"format is {fmt!r}, expected {MODEL_FORMAT!r}")
+        version = int(data["version"]) if "version" in data else None
+        if version != MODEL_VERSION:
+            raise FormatVersionError(
+                path, f"model version {version!r}; this reader reads version {MODEL_VERSION}"
+            )
+        missing = {"tsdf", "weight", "T_world_from_voxel", "voxel_size_mm", "trunc_mm"} - set(data)
+        if missing:
+            raise InvalidInputError(path, f"model file lacks field(s) {sorted(missing)}")
+        try:
+            return cls(
+                tsdf=data["tsdf"],
+                weight=data["weight"],
+                T_world_from_voxel=data["T_world_from_voxel"],
+                voxel_size_mm=float(data["voxel_size_mm"]),
+                trunc_mm=float(data["trunc_mm"]),
+                color=data.get("color"),
+                step=int(data.get("step", 0)),
+            )
+        except InvalidInputError as exc:
+            raise InvalidInputError(path, f"{exc.source}: {exc.problem}") from None

@@ -1,0 +1,422 @@
+"""Rigid registration of a (scaled) depth estimate to the model surface, with Open3D.
+
+Global: FPFH features + RANSAC (``registration_ransac_based_on_feature_matching``), as
+in the paper, because changed (removed) tissue must not pull the alignment; then ICP.
+Refinement: point-to-plane ICP with a Tukey robust kernel, coarse to fine correspondence
+distances, so points on removed tissue (several mm deeper than the model) are rejected.
+
+All transforms returned are ``T_model_from_est``: they map the estimate's world points
+(placed with the tracked camera pose) onto the model (world = CT frame). For a camera
+this is a correction applied on the world side: ``T_world_from_cam_corrected =
+T_model_from_est @ T_world_from_cam_tracked``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from chisel.errors import InvalidInputError
+from chisel.geometry import rotation_angle_deg, transform_points
+
+reg = o3d.pipelines.registration
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Parameters of RANSAC + ICP registration (mm)."""
+
+    voxel_mm: float = 1.0
+    """Down-sampling voxel of the global (FPFH + RANSAC) stage, mm."""
+    icp_max_dist_mm: tuple[float, ...] = (3.0, 1.5, 0.75)
+    """Correspondence distances of the coarse-to-fine ICP passes, mm."""
+    tukey_k_mm: float = 0.5
+    """Tukey kernel width of the point-to-plane ICP, mm: residuals beyond it count 0."""
+    icp_max_iter: int = 30
+    """ICP iterations per pass."""
+    fitness_dist_mm: float = 1.5
+    """Inlier distance used to report fitness (fraction of estimate points near the model)."""
+    min_fitness: float = 0.3
+    """A registration with fitness below this fails; its frames are skipped, never fused."""
+    max_correction_mm: float = 10.0
+    """A correction moving the estimate's centroid further than this fails (implausible)."""
+    max_correction_deg: float = 15.0
+    """A correction rotating more than this fails (implausible for a tracked endoscope)."""
+    ransac_max_iter: int = 100_000
+    """RANSAC iteration cap."""
+    ransac_confidence: float = 0.999
+    """RANSAC early-stop confidence."""
+    pose_prior: float = 0.05
+    """Per-frame ICP: weight of a prior keeping the camera centre at its starting point,
+    as a fraction of the total correspondence weight per mm^2. It breaks the scale /
+    distance ambiguity of a nearly planar view and costs a bias of about this fraction of
+    the true offset in well-constrained directions."""
+    seed: int = 0
+    """Seed of Open3D's random generator (RANSAC sampling): same seed, same result."""
+
+    def __post_init__(self) -> None:
+        if self.voxel_mm <= 0:
+            raise InvalidInputError("voxel_mm", f"must be > 0, got {self.voxel_mm}")
+        if not self.icp_max_dist_mm or min(self.icp_max_dist_mm) <= 0:
+            raise InvalidInputError(
+                "icp_max_dist_mm", f"need positive distances, got {self.icp_max_dist_mm}"
+            )
+        if self.tukey_k_mm <= 0 or self.fitness_dist_mm <= 0:
+            raise InvalidInputError("tukey_k_mm", "kernel width and fitness distance must be > 0")
+        if not 0.0 <= self.min_fitness <= 1.0:
+            raise InvalidInputError("min_fitness", f"must be in [0, 1], got {self.min_fitness}")
+
+
+@dataclass
+class RegistrationResult:
+    """Outcome of one registration."""
+
+    T_model_from_est: np.ndarray
+    """(4, 4) float64 correction, mm (identity when registration failed or was off)."""
+    fitness: float
+    """Fraction of estimate points within ``fitness_dist_mm`` of the model after alignment."""
+    rmse_mm: float
+    """RMS distance of those inliers, mm."""
+    method: str
+    """"ransac+icp", "icp" or "none"."""
+    ok: bool = True
+    """False when the result failed a check (fitness, plausibility)."""
+    reason: str = ""
+    """Why it failed, empty when ok."""
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "T_model_from_est": np.asarray(self.T_model_from_est).tolist(),
+            "fitness": float(self.fitness),
+            "rmse_mm": float(self.rmse_mm),
+            "method": self.method,
+            "ok": bool(self.ok),
+            "reason": self.reason,
+            **self.extra,
+        }
+
+
+def make_cloud(points_mm: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+    """Open3D point cloud. points_mm : (N, 3) float, mm; normals : (N, 3) unit or None."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_mm, np.float64)))
+    if normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
+    return pcd
+
+
+def organized_normals(points: np.ndarray) -> np.ndarray:
+    """Normals of an organised (H, W, 3) point map by central differences; NaN where undefined.
+
+    Oriented towards the camera (negative z in the camera frame is not assumed: the sign
+    only matters for point-to-plane ICP up to orientation, which is sign-free).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    n = np.full_like(p, np.nan)
+    dx = p[1:-1, 2:] - p[1:-1, :-2]
+    dy = p[2:, 1:-1] - p[:-2, 1:-1]
+    c = np.cross(dx, dy)
+    norm = np.linalg.norm(c, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n[1:-1, 1:-1] = c / norm
+    return n
+
+
+def correction_size(T_model_from_est: np.ndarray, center_mm: np.ndarray) -> tuple[float, float]:
+    """(displacement of ``center_mm`` in mm, rotation angle in degrees) of a correction."""
+    c = np.asarray(center_mm, dtype=np.float64)
+    moved = transform_points(T_model_from_est, c[None])[0]
+    return float(np.linalg.norm(moved - c)), rotation_angle_deg(T_model_from_est[:3, :3])
+
+
+def _fpfh(pcd: o3d.geometry.PointCloud, voxel: float) -> o3d.pipelines.registration.Feature:
+    return reg.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100)
+    )
+
+
+def icp_refine(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: np.ndarray,
+    cfg: RegistrationConfig,
+) -> np.ndarray:
+    """Coarse-to-fine point-to-plane ICP with a Tukey kernel; returns ``T_target_from_source``.
+
+    ``target`` must carry normals.
+    """
+    T = np.asarray(init, dtype=np.float64)
+    for dist in cfg.icp_max_dist_mm:
+        kernel = reg.TukeyLoss(k=max(cfg.tukey_k_mm, dist / 2.0))
+        res = reg.registration_icp(
+            source,
+            target,
+            dist,
+            T,
+            reg.TransformationEstimationPointToPlane(kernel),
+            reg.ICPConvergenceCriteria(max_iteration=cfg.icp_max_iter),
+        )
+        T = np.asarray(res.transformation, dtype=np.float64)
+    return T
+
+
+def evaluate(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    T: np.ndarray,
+    cfg: RegistrationConfig,
+) -> tuple[float, float]:
+    """(fitness, inlier RMSE mm) of ``T`` at ``cfg.fitness_dist_mm``."""
+    ev = reg.evaluate_registration(source, target, cfg.fitness_dist_mm, T)
+    return float(ev.fitness), float(ev.inlier_rmse)
+
+
+def check_result(
+    T: np.ndarray,
+    fitness: float,
+    rmse: float,
+    method: str,
+    center: np.ndarray,
+    cfg: RegistrationConfig,
+) -> RegistrationResult:
+    """Package a registration, failing it on low fitness or an implausible correction."""
+    shift_mm, angle_deg = correction_size(T, center)
+    extra = {"correction_mm": shift_mm, "correction_deg": angle_deg}
+    if fitness < cfg.min_fitness:
+        return RegistrationResult(
+            T, fitness, rmse, method, False,
+            f"fitness {fitness:.3f} < min_fitness {cfg.min_fitness}", extra,
+        )  # fmt: skip
+    if shift_mm > cfg.max_correction_mm or angle_deg > cfg.max_correction_deg:
+        return RegistrationResult(
+            T, fitness, rmse, method, False,
+            f"implausible correction {shift_mm:.2f} mm / {angle_deg:.2f} deg (limits "
+            f"{cfg.max_correction_mm} mm / {cfg.max_correction_deg} deg)", extra,
+        )  # fmt: skip
+    return RegistrationResult(T, fitness, rmse, method, True, "", extra)
+
+
+def register_global(
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    target_normals: np.ndarray,
+    cfg: RegistrationConfig,
+    init: np.ndarray | None = None,
+) -> RegistrationResult:
+    """RANSAC (FPFH) + robust ICP of estimate points onto model surface points.
+
+    source_mm : (N, 3) float64 estimate points in world mm (placed with tracked poses).
+    target_mm : (M, 3) float64 model surface points, world mm; target_normals : (M, 3).
+    init : (4, 4) prior correction (identity = trust the tracker). ICP is run both from
+    the RANSAC solution and from ``init``; the one with the higher fitness wins, so a
+    RANSAC failure on a symmetric scene cannot make things worse than the tracker.
+    """
+    src = np.asarray(source_mm, np.float64)
+    tgt = np.asarray(target_mm, np.float64)
+    if len(src) < 10 or len(tgt) < 10:
+        raise InvalidInputError(
+            "registration", f"too few points: {len(src)} source, {len(tgt)} target"
+        )
+    init = np.eye(4) if init is None else np.asarray(init, np.float64)
+    o3d.utility.random.seed(int(cfg.seed))
+    v = cfg.voxel_mm
+    src_pcd = make_cloud(src).voxel_down_sample(v)
+    tgt_full = make_cloud(tgt, target_normals)
+    tgt_pcd = tgt_full.voxel_down_sample(v)
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * v, max_nn=30)
+    src_pcd.estimate_normals(search)
+    src_f = _fpfh(src_pcd, v)
+    tgt_f = _fpfh(tgt_pcd, v)
+    ransac = reg.registration_ransac_based_on_feature_matching(
+        src_pcd,
+        tgt_pcd,
+        src_f,
+        tgt_f,
+        True,
+        1.5 * v,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            reg.CorrespondenceCheckerBasedOnDistance(1.5 * v),
+        ],
+        reg.RANSACConvergenceCriteria(cfg.ransac_max_iter, cfg.ransac_confidence),
+    )
+    center = src.mean(axis=0)
+    candidates = []
+    for name, start in (("ransac+icp", np.asarray(ransac.transformation)), ("icp", init)):
+        T = icp_refine(src_pcd, tgt_full, start, cfg)
+        fit, rmse = evaluate(src_pcd, tgt_full, T, cfg)
+        shift, ang = correction_size(T, center)
+        plausible = shift <= cfg.max_correction_mm and ang <= cfg.max_correction_deg
+        candidates.append((plausible, fit, -rmse, name, T))
+    candidates.sort(key=lambda c: (c[0], c[1], c[2]), reverse=True)
+    _, fit, neg_rmse, name, T = candidates[0]
+    res = check_result(T, fit, -neg_rmse, name, center, cfg)
+    res.extra["ransac_fitness"] = float(ransac.fitness)
+    return res
+
+
+def register_local(
+    source_mm: np.ndarray,
+    target: o3d.geometry.PointCloud,
+    init: np.ndarray,
+    cfg: RegistrationConfig,
+    center_mm: np.ndarray | None = None,
+) -> RegistrationResult:
+    """Robust ICP only (per-frame refinement) from ``init``; ``target`` carries normals."""
+    src = np.asarray(source_mm, np.float64)
+    if len(src) < 10:
+        raise InvalidInputError("registration", f"too few estimate points: {len(src)}")
+    src_pcd = make_cloud(src)
+    T = icp_refine(src_pcd, target, init, cfg)
+    fit, rmse = evaluate(src_pcd, target, T, cfg)
+    center = src.mean(axis=0) if center_mm is None else center_mm
+    return check_result(T, fit, rmse, "icp", center, cfg)
+
+
+class SurfaceIndex:
+    """Model surface points with normals and a k-d tree, built once per step.
+
+    points_mm : (N, 3) float64 world mm (mesh vertices); normals : (N, 3) unit.
+    """
+
+    def __init__(self, points_mm: np.ndarray, normals: np.ndarray) -> None:
+        self.points = np.asarray(points_mm, dtype=np.float64)
+        self.normals = np.asarray(normals, dtype=np.float64)
+        if len(self.points) < 10 or self.normals.shape != self.points.shape:
+            raise InvalidInputError(
+                "surface", f"need >= 10 points with normals, got {self.points.shape}"
+            )
+        self.tree = cKDTree(self.points)
+
+
+def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    a = float(np.linalg.norm(w))
+    if a < 1e-15:
+        return np.eye(3)
+    k = w / a
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+@dataclass
+class SimilarityResult:
+    """Outcome of :func:`icp_similarity`."""
+
+    T_model_from_est: np.ndarray
+    """(4, 4) float64 rigid correction (world side), mm."""
+    scale: float
+    """Depth multiplier about the camera centre (1 = the scale passed in was right)."""
+    fitness: float
+    """Fraction of source points within ``fitness_dist_mm`` of the surface."""
+    rmse_mm: float
+    """Point-to-plane RMS of those inliers, mm."""
+    iterations: int
+
+
+def icp_similarity(
+    source_mm: np.ndarray,
+    center_mm: np.ndarray,
+    surface: SurfaceIndex,
+    init: np.ndarray,
+    cfg: RegistrationConfig,
+    estimate_scale: bool = True,
+    prior: bool = False,
+) -> SimilarityResult:
+    """Robust point-to-plane ICP with an optional scale about the camera centre (7 DoF).
+
+    A monocular estimate's scale and the camera's distance to the scene trade off for a
+    single view; solving them jointly removes the bias a fixed scale would leave in the
+    pose (and vice versa). Each pass uses nearest-neighbour correspondences within
+    ``dist`` and Tukey weights of width max(tukey_k_mm, dist / 2) on the point-to-plane
+    residual, so points on removed tissue (deeper than the model) carry no weight.
+
+    source_mm : (N, 3) float64 estimate points in world mm placed with the tracked pose.
+    center_mm : (3,) the tracked camera centre (the scale acts about it), mm.
+    init : (4, 4) starting rigid correction ``T_model_from_est``.
+    prior : keep the corrected camera centre near ``init``'s (weight ``cfg.pose_prior``);
+        use it when ``init`` already predicts the pose well (a known hand-eye error).
+    The corrected points are ``R * scale * (p - c) + c'`` with ``c' = init(c)`` refined.
+    """
+    p = np.asarray(source_mm, dtype=np.float64)
+    if len(p) < 10:
+        raise InvalidInputError("registration", f"too few estimate points: {len(p)}")
+    c = np.asarray(center_mm, dtype=np.float64)
+    init = np.asarray(init, dtype=np.float64)
+    R = init[:3, :3].copy()
+    c_new = init[:3, :3] @ c + init[:3, 3]
+    c_prior = c_new.copy()
+    sigma = 1.0
+    rel = p - c
+    it = 0
+    for dist in cfg.icp_max_dist_mm:
+        k = max(cfg.tukey_k_mm, dist / 2.0)
+        for _ in range(cfg.icp_max_iter):
+            it += 1
+            y_rel = sigma * rel @ R.T
+            y = y_rel + c_new
+            d, idx = surface.tree.query(y, distance_upper_bound=dist, workers=-1)
+            ok = np.isfinite(d)
+            if ok.sum() < 10:
+                break
+            yr, q, n = y_rel[ok], surface.points[idx[ok]], surface.normals[idx[ok]]
+            r = np.einsum("ij,ij->i", y[ok] - q, n)
+            w = np.where(np.abs(r) < k, (1.0 - (r / k) ** 2) ** 2, 0.0)
+            cols = [np.cross(yr, n), n]
+            if estimate_scale:
+                cols.append(np.einsum("ij,ij->i", yr, n)[:, None])
+            J = np.concatenate(cols, axis=1)
+            A = (J * w[:, None]).T @ J
+            b = -(J * w[:, None]).T @ r
+            lam = cfg.pose_prior * float(w.sum()) if prior else 0.0
+            A[3:6, 3:6] += lam * np.eye(3)
+            b[3:6] += lam * (c_prior - c_new)
+            A += np.eye(len(A)) * (1e-9 * np.trace(A) + 1e-12)
+            try:
+                x = np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:
+                break
+            R = _rotvec_to_matrix(x[:3]) @ R
+            c_new = c_new + x[3:6]
+            if estimate_scale:
+                sigma *= float(np.exp(x[6]))
+            if (
+                np.linalg.norm(x[:3]) < 1e-6
+                and np.linalg.norm(x[3:6]) < 1e-5
+                and (not estimate_scale or abs(x[6]) < 1e-6)
+            ):
+                break
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = c_new - R @ c
+    y = sigma * rel @ R.T + c_new
+    d, idx = surface.tree.query(y, distance_upper_bound=cfg.fitness_dist_mm, workers=-1)
+    ok = np.isfinite(d)
+    fitness = float(ok.mean())
+    if ok.any():
+        r = np.einsum("ij,ij->i", y[ok] - surface.points[idx[ok]], surface.normals[idx[ok]])
+        rmse = float(np.sqrt(np.mean(r**2)))
+    else:
+        rmse = float("nan")
+    return SimilarityResult(T, sigma, fitness, rmse, it)
+
+
+def robust_mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
+    """Robust average of rigid transforms: median rotation vector and median translation.
+
+    transforms : list of (4, 4) float64 rigid transforms that differ by small rotations.
+    """
+    from scipy.spatial.transform import Rotation
+
+    if not transforms:
+        raise InvalidInputError("transforms", "need at least one transform to average")
+    Ts = np.stack(transforms)
+    rv = Rotation.from_matrix(Ts[:, :3, :3]).as_rotvec()
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(np.median(rv, axis=0)).as_matrix()
+    out[:3, 3] = np.median(Ts[:, :3, 3], axis=0)
+    return out

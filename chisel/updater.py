@@ -1,0 +1,630 @@
+"""The updater: preoperative model, per-step change detection and the masked update.
+
+Pure functions at the boundaries (:func:`build_preop_model`, :func:`update_step`,
+:func:`render_depth`) and one streaming class (:class:`ChiselUpdater`) that takes one
+frame at a time for a navigation system. File I/O lives in ``chisel.commands.model``.
+
+Per frame of a surgical step (paper, section 2; deviations in ``docs/updater.md``):
+
+1. render M_t: the model's surface at step start (marching cubes, cached per step) ray
+   cast at the frame's tracked pose;
+2. the depth source gives an estimate of the new depth (possibly up to scale);
+3. registration (unless switched off): a sequence-level RANSAC (FPFH) + robust ICP of all
+   frames' scaled estimates to the model surface gives one correction (hand-eye error),
+   then each frame is refined with robust point-to-plane ICP (tracking jitter) against
+   the model rendered at the corrected pose, with the scale re-solved there; frames
+   whose fitness is too low are skipped and reported, never fused;
+4. the registered estimate is re-projected into the frame at its tracked pose -> M',
+   pixels lost in projection take M_t ("imputation");
+5. change mask m = (M' - M_t) > threshold, cleaned;
+6. masked integration of M' with ``w = 0 * W_t + m`` (see :mod:`chisel.fusion`).
+
+Registration off (the paper's ablation): the estimate is only scaled to the render
+(robust median of ratios) and used as M' directly.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import trimesh
+
+from chisel.change import ChangeConfig, change_mask, impute, reproject_depth, solve_scale
+from chisel.depth_source import is_metric
+from chisel.errors import EmptyResultError, InvalidInputError, PoseError
+from chisel.fusion import check_pose_in_model, integrate
+from chisel.geometry import Camera, check_rigid, invert_rigid, transform_points
+from chisel.mesh import extract_mesh
+from chisel.model import TsdfModel
+from chisel.raycast import MeshRaycaster
+from chisel.registration import (
+    RegistrationConfig,
+    RegistrationResult,
+    SurfaceIndex,
+    check_result,
+    icp_similarity,
+    register_global,
+    robust_mean_transform,
+)
+from chisel.sequence import Frame, check_depth_mm
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------- configs
+@dataclass(frozen=True)
+class BuildConfig:
+    """Parameters of the preoperative model."""
+
+    voxel_size_mm: float = 0.5
+    """Voxel edge, mm."""
+    trunc_mm: float = 2.0
+    """Truncation of the signed distance, mm (>= voxel size; ~4 voxels is usual)."""
+    margin_mm: float = 3.0
+    """Margin added around the data's bounds, mm."""
+    max_view_mm: float = 60.0
+    """The grid is cropped to the camera centres' box grown by this, mm (large CT scans)."""
+    color: bool = False
+    """Keep colour (from the frames' RGB) in the model."""
+
+    def __post_init__(self) -> None:
+        if not self.voxel_size_mm > 0:
+            raise InvalidInputError("voxel_size_mm", f"must be > 0, got {self.voxel_size_mm}")
+        if not self.trunc_mm >= self.voxel_size_mm:
+            raise InvalidInputError(
+                "trunc_mm", f"must be >= voxel_size_mm ({self.voxel_size_mm}), got {self.trunc_mm}"
+            )
+        if self.margin_mm < 0 or self.max_view_mm <= 0:
+            raise InvalidInputError("margin_mm", "margin must be >= 0 and max_view_mm > 0")
+
+
+@dataclass(frozen=True)
+class UpdateConfig:
+    """Parameters of one update step."""
+
+    change: ChangeConfig = field(default_factory=ChangeConfig)
+    """Change-mask threshold and cleaning."""
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    """RANSAC + ICP parameters."""
+    register: bool = True
+    """False = the paper's registration ablation: scale only, no RANSAC/ICP."""
+    sequence_ransac: bool = True
+    """Batch mode: run RANSAC + ICP on the whole step's point cloud before per-frame ICP."""
+    solve_scale: Literal["auto", "always", "never"] = "auto"
+    """Refine the depth scale jointly with the pose in per-frame ICP: "auto" = unless the
+    depth source declares metric depth (``is_metric``). The initial robust median of
+    ratios is always applied."""
+    stride_px: int = 3
+    """Pixel stride of the points used for per-frame registration (speed)."""
+    sequence_stride_px: int = 6
+    """Pixel stride of each frame's points in the sequence-level cloud."""
+
+    def __post_init__(self) -> None:
+        if self.stride_px < 1 or self.sequence_stride_px < 1:
+            raise InvalidInputError("stride_px", "strides must be >= 1")
+
+
+# ---------------------------------------------------------------------------- rendering
+class ModelRenderer:
+    """Depth renders of a model's surface (marching cubes once, then Open3D ray casting)."""
+
+    def __init__(self, model: TsdfModel) -> None:
+        self.mesh: trimesh.Trimesh = extract_mesh(model, with_color=False)
+        self.raycaster = MeshRaycaster(self.mesh.vertices, self.mesh.faces)
+        self._normals = np.asarray(self.mesh.vertex_normals)
+        self._index: SurfaceIndex | None = None
+
+    @property
+    def index(self) -> SurfaceIndex:
+        """k-d tree of the surface's vertices with normals (registration target), lazily built."""
+        if self._index is None:
+            self._index = SurfaceIndex(self.mesh.vertices, self._normals)
+        return self._index
+
+    def render(self, camera: Camera, T_world_from_cam: np.ndarray) -> np.ndarray:
+        """(H, W) float32 z-depth of the model surface, mm, NaN where nothing is hit."""
+        return self.raycaster.render_depth(camera, T_world_from_cam)
+
+    def surface_points(self, lo_mm: np.ndarray, hi_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mesh vertices and normals inside a world box: ((N, 3), (N, 3)) float64 mm."""
+        v = self.mesh.vertices
+        sel = np.all((v >= lo_mm) & (v <= hi_mm), axis=1)
+        return v[sel], self._normals[sel]
+
+
+def render_depth(model: TsdfModel, camera: Camera, T_world_from_cam: np.ndarray) -> np.ndarray:
+    """Depth of the model's surface at a pose: (H, W) float32 mm, NaN = no surface.
+
+    Convenience for one pose; for many poses keep a :class:`ModelRenderer`.
+    """
+    return ModelRenderer(model).render(camera, T_world_from_cam)
+
+
+# ---------------------------------------------------------------------------- preop
+def preop_bounds(
+    surface: trimesh.Trimesh, poses: np.ndarray, cfg: BuildConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """World box of the preoperative grid: the surface's bounds plus a margin, cropped to
+    the camera centres' box grown by ``max_view_mm``, and always holding every camera."""
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in surface.bounds)
+    lo, hi = lo - cfg.margin_mm, hi + cfg.margin_mm
+    cams = poses[:, :3, 3]
+    lo = np.maximum(lo, cams.min(axis=0) - cfg.max_view_mm)
+    hi = np.minimum(hi, cams.max(axis=0) + cfg.max_view_mm)
+    lo = np.minimum(lo, cams.min(axis=0) - cfg.margin_mm)
+    hi = np.maximum(hi, cams.max(axis=0) + cfg.margin_mm)
+    return lo, hi
+
+
+def build_preop_model(
+    surface: trimesh.Trimesh,
+    camera: Camera,
+    poses: np.ndarray,
+    cfg: BuildConfig = BuildConfig(),  # noqa: B008 - frozen dataclass
+    rgbs: Iterable[np.ndarray | None] | None = None,
+    masks: Iterable[np.ndarray | None] | None = None,
+    progress: Callable[[Iterable], Iterable] | None = None,
+) -> TsdfModel:
+    """Fuse the CT surface rendered at every preoperative pose into a new TSDF model.
+
+    surface : CT segmentation surface, world mm (see :func:`chisel.ct.load_ct_surface`).
+    poses : (N, 4, 4) float64 ``T_world_from_cam`` of the preop sequence, mm.
+    rgbs : N (H, W, 3) uint8 images (or None) for colour; masks : N (H, W) bool or None.
+    Curless-Levoy averaging with w = 1 per valid pixel; free space is carved (d = +1).
+    """
+    P = check_rigid(poses, "poses")
+    if P.ndim != 3 or len(P) == 0:
+        raise PoseError("poses", f"expected (N, 4, 4) poses with N >= 1, got shape {P.shape}")
+    rgb_list = [None] * len(P) if rgbs is None else list(rgbs)
+    mask_list = [None] * len(P) if masks is None else list(masks)
+    if len(rgb_list) != len(P) or len(mask_list) != len(P):
+        raise PoseError(
+            "poses",
+            f"{len(P)} poses but {len(rgb_list)} images and {len(mask_list)} masks: counts differ",
+        )
+    if len(surface.faces) == 0:
+        raise InvalidInputError("surface", "CT surface has no triangle")
+    lo, hi = preop_bounds(surface, P, cfg)
+    model = TsdfModel.empty(lo, hi, cfg.voxel_size_mm, cfg.trunc_mm, with_color=cfg.color)
+    rc = MeshRaycaster(surface.vertices, surface.faces)
+    items = list(zip(P, rgb_list, mask_list, strict=True))
+    it = progress(items) if progress is not None else items
+    seen = 0
+    for T, rgb, mask in it:
+        depth = rc.render_depth(camera, T)
+        if mask is not None:
+            depth = np.where(mask, depth, np.nan).astype(np.float32)
+        if np.isfinite(depth).any():
+            seen += 1
+            integrate(model, camera, T, depth, rgb=rgb)
+    if seen == 0:
+        raise EmptyResultError("the CT surface is not visible from any preoperative pose")
+    return model
+
+
+# ---------------------------------------------------------------------------- reports
+@dataclass
+class FrameReport:
+    """What happened to one frame of a step."""
+
+    index: int
+    used: bool
+    reason: str = ""
+    scale: float = float("nan")
+    registration: dict | None = None
+    changed_fraction: float = 0.0
+    voxels_updated: int = 0
+    mask: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) bool change mask (not serialised)."""
+    m_prime: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) float32 M' after imputation, mm (not serialised)."""
+    m_t: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) float32 render of the model M_t, mm (not serialised)."""
+
+    def to_dict(self) -> dict:
+        return {
+            "index": self.index,
+            "used": self.used,
+            "reason": self.reason,
+            "scale": None if not np.isfinite(self.scale) else float(self.scale),
+            "registration": self.registration,
+            "changed_fraction": float(self.changed_fraction),
+            "voxels_updated": int(self.voxels_updated),
+        }
+
+
+@dataclass
+class StepReport:
+    """Summary of one update step (serialised as the JSON report of ``chisel update``)."""
+
+    step: int
+    frames: list[FrameReport]
+    sequence_registration: dict | None
+    config: dict
+
+    @property
+    def frames_used(self) -> list[int]:
+        return [f.index for f in self.frames if f.used]
+
+    @property
+    def frames_skipped(self) -> list[dict]:
+        return [{"index": f.index, "reason": f.reason} for f in self.frames if not f.used]
+
+    def to_dict(self) -> dict:
+        used = [f for f in self.frames if f.used]
+        return {
+            "step": self.step,
+            "num_frames": len(self.frames),
+            "frames_used": self.frames_used,
+            "frames_skipped": self.frames_skipped,
+            "changed_pixel_fraction_mean": float(np.mean([f.changed_fraction for f in used]))
+            if used
+            else 0.0,
+            "sequence_registration": self.sequence_registration,
+            "frames": [f.to_dict() for f in self.frames],
+            "config": self.config,
+        }
+
+
+def _config_dict(cfg: UpdateConfig) -> dict:
+    from dataclasses import asdict
+
+    return asdict(cfg)
+
+
+# ---------------------------------------------------------------------------- streaming
+class ChiselUpdater:
+    """Keeps a model current, one frame at a time (streaming use in a navigation system).
+
+    Usage::
+
+        upd = ChiselUpdater(model, camera, depth_source)
+        upd.begin_step()                 # M_t := the model now
+        for frame in frames:             # Frame with rgb and/or depth, tracked pose
+            report = upd.process(frame)
+        step_report = upd.end_step()     # model.step += 1
+        upd.model.save("step_01.npz")
+
+    The model passed in is copied; ``upd.model`` is the current one. Tracking error is
+    modelled as a constant camera-side (hand-eye) correction F, ``T_corrected =
+    T_tracked @ F``, plus per-frame jitter. In streaming use F is the robust mean of the
+    corrections of the last ``HISTORY`` registered frames (kept across steps); each
+    frame's ICP starts from it and, once 3 frames agree, is held near it by a weak prior.
+    A frame whose ICP fails is retried with RANSAC + ICP on its own points.
+    """
+
+    HISTORY = 15
+    """Frames whose corrections form the streaming estimate of F."""
+
+    def __init__(
+        self,
+        model: TsdfModel,
+        camera: Camera,
+        depth_source: Callable[[Frame], np.ndarray] | None = None,
+        cfg: UpdateConfig = UpdateConfig(),  # noqa: B008 - frozen dataclass
+    ) -> None:
+        self.model = model.copy()
+        self.camera = camera
+        self.depth_source = depth_source
+        self.cfg = cfg
+        self._renderer: ModelRenderer | None = None
+        self._reset: np.ndarray | None = None
+        self._frames: list[FrameReport] = []
+        self._F = np.eye(4)
+        self._F_hist: list[np.ndarray] = []
+        self._fixed = False
+        self._seq_reg: dict | None = None
+
+    # ----------------------------------------------------------------- step control
+    def begin_step(
+        self,
+        hand_eye: np.ndarray | None = None,
+        fixed: bool = False,
+        sequence_registration: dict | None = None,
+    ) -> None:
+        """Start a surgical step: M_t is the model as it is now.
+
+        hand_eye : (4, 4) camera-side correction F (``T_corrected = T_tracked @ F``) to
+        start from, e.g. from a sequence-level registration; fixed : use F as is for
+        every frame (batch) instead of re-estimating it from the frames (streaming).
+        """
+        self._renderer = ModelRenderer(self.model)
+        self._reset = np.zeros(self.model.shape, dtype=np.uint8)
+        self._frames = []
+        if hand_eye is not None:
+            self._F = check_rigid(hand_eye, "hand_eye")
+        self._fixed = fixed
+        self._seq_reg = sequence_registration
+
+    @property
+    def hand_eye(self) -> np.ndarray:
+        """(4, 4) current camera-side correction F (``T_corrected = T_tracked @ F``)."""
+        if self._fixed or not self._F_hist:
+            return self._F.copy()
+        return robust_mean_transform(self._F_hist[-self.HISTORY :])
+
+    @property
+    def renderer(self) -> ModelRenderer:
+        if self._renderer is None:
+            raise RuntimeError("call begin_step() before processing frames")
+        return self._renderer
+
+    def end_step(self) -> StepReport:
+        """Finish the step: the model's step counter advances; returns the report."""
+        if self._renderer is None:
+            raise RuntimeError("end_step() without begin_step()")
+        if not any(f.used for f in self._frames):
+            reasons = sorted({f.reason for f in self._frames})[:5]
+            raise EmptyResultError(
+                f"no frame of the step could be used ({len(self._frames)} frames; reasons: {reasons})"
+            )
+        self.model = _with_step(self.model, self.model.step + 1)
+        rep = StepReport(self.model.step, self._frames, self._seq_reg, _config_dict(self.cfg))
+        self._renderer = None
+        self._reset = None
+        return rep
+
+    # ----------------------------------------------------------------- one frame
+    def estimate(self, frame: Frame) -> np.ndarray:
+        """The depth source's estimate for ``frame``, validated; (H, W) float32, NaN invalid."""
+        if self.depth_source is None:
+            raise InvalidInputError("depth_source", "no depth source given to the updater")
+        return validate_estimate(
+            self.depth_source(frame), frame, self.camera, is_metric(self.depth_source)
+        )
+
+    def process(
+        self,
+        frame: Frame,
+        estimate: np.ndarray | None = None,
+        render_mm: np.ndarray | None = None,
+        keep_maps: bool = False,
+    ) -> FrameReport:
+        """Detect the change in one frame and carve it into the model.
+
+        frame : tracked pose plus image and/or depth; estimate : (H, W) float32 depth up to
+        scale (None = ask the depth source); render_mm : (H, W) float32 M_t at the
+        tracked pose if already rendered. Returns the frame's report; a frame that fails
+        registration is skipped (``used = False``) and leaves the model untouched.
+        """
+        renderer = self.renderer
+        T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
+        E = self.estimate(frame) if estimate is None else estimate
+        R = renderer.render(self.camera, T) if render_mm is None else render_mm
+        rep = FrameReport(index=frame.index, used=False)
+        try:
+            m_prime, scale, reg_res = self._m_prime(T, E, R)
+        except EmptyResultError as exc:
+            rep.reason = str(exc)
+            self._frames.append(rep)
+            return rep
+        rep.scale = scale
+        rep.registration = None if reg_res is None else reg_res.to_dict()
+        if reg_res is not None and not reg_res.ok:
+            rep.reason = f"registration failed: {reg_res.reason}"
+            self._frames.append(rep)
+            return rep
+        if reg_res is not None:
+            self._F_hist.append(invert_rigid(T) @ reg_res.T_model_from_est @ T)
+        mask = change_mask(m_prime, R, self.cfg.change)
+        rep.voxels_updated = integrate(
+            self.model, self.camera, T, m_prime, pixel_weight=mask, rgb=frame.rgb, reset=self._reset
+        )
+        valid = np.isfinite(R)
+        rep.changed_fraction = float(mask.sum() / max(int(valid.sum()), 1))
+        rep.used = True
+        if keep_maps:
+            rep.mask, rep.m_prime, rep.m_t = mask, m_prime, R
+        self._frames.append(rep)
+        return rep
+
+    def _m_prime(
+        self, T: np.ndarray, E: np.ndarray, R: np.ndarray
+    ) -> tuple[np.ndarray, float, RegistrationResult | None]:
+        """M' (after imputation), the scale, and the registration (None when off)."""
+        cfg = self.cfg
+        s0, _ = solve_scale(R, E, cfg.change.threshold_mm)
+        if not cfg.register:
+            return impute((s0 * E).astype(np.float32), R), s0, None
+        rcfg = cfg.registration
+        C = T @ self.hand_eye @ invert_rigid(T)
+        prior = self._fixed or len(self._F_hist) >= 3
+        src = _points(self.camera, s0 * E, T, cfg.stride_px)  # placed with the tracked pose
+        center = T[:3, 3]
+        index = self.renderer.index
+        scale_free = cfg.solve_scale == "always" or (
+            cfg.solve_scale == "auto" and not is_metric(self.depth_source)
+        )
+        sim = icp_similarity(src, center, index, C, rcfg, estimate_scale=scale_free, prior=prior)
+        res = check_result(
+            sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg
+        )
+        if not res.ok:
+            # Lost track (first frame, a jump): global RANSAC on this frame alone, then ICP.
+            lo, hi = src.min(axis=0) - 5.0, src.max(axis=0) + 5.0
+            tv, tn = self.renderer.surface_points(lo, hi)
+            if len(tv) >= 10:
+                glob = register_global(src, tv, tn, rcfg, init=C)
+                if glob.ok:
+                    sim = icp_similarity(
+                        src, center, index, glob.T_model_from_est, rcfg, estimate_scale=scale_free
+                    )
+                    res = check_result(
+                        sim.T_model_from_est,
+                        sim.fitness,
+                        sim.rmse_mm,
+                        "ransac+icp",
+                        src.mean(axis=0),
+                        rcfg,
+                    )
+        s = s0 * sim.scale
+        res.extra.update({"scale_refinement": sim.scale, "icp_iterations": sim.iterations})
+        if not res.ok:
+            return impute(np.full_like(E, np.nan), R), s, res
+        pts_world = transform_points(
+            res.T_model_from_est @ T, self.camera.backproject(s * E).reshape(-1, 3)
+        )
+        pts_world = pts_world[np.isfinite(pts_world).all(axis=1)]
+        m_prime = impute(reproject_depth(pts_world, self.camera, T), R)
+        return m_prime, s, res
+
+
+def _with_step(model: TsdfModel, step: int) -> TsdfModel:
+    from dataclasses import replace
+
+    return replace(model, step=step)
+
+
+def _points(
+    camera: Camera, depth_mm: np.ndarray, T_world_from_cam: np.ndarray, stride: int
+) -> np.ndarray:
+    """World points (N, 3) float64 of every ``stride``-th pixel of a depth map, mm."""
+    rays = camera.rays_cam()[::stride, ::stride]
+    d = np.asarray(depth_mm, dtype=np.float64)[::stride, ::stride]
+    ok = np.isfinite(d) & (d > 0)
+    pc = rays[ok] * d[ok][:, None]
+    return transform_points(T_world_from_cam, pc)
+
+
+def validate_estimate(depth: np.ndarray, frame: Frame, camera: Camera, metric: bool) -> np.ndarray:
+    """Check a depth source's output for ``frame``; returns (H, W) float32, NaN = invalid.
+
+    Raises :class:`InvalidInputError` on a wrong shape or an all-invalid map, and (for
+    metric sources) :class:`~chisel.errors.DepthUnitsError` on depth that looks like metres.
+    """
+    source = f"depth of frame {frame.index}"
+    d = np.asarray(depth)
+    camera.check_image(d, source)
+    if metric:
+        d = check_depth_mm(d, source)
+    else:
+        d = np.asarray(d, dtype=np.float32)
+        d = np.where(np.isfinite(d) & (d > 0), d, np.float32(np.nan)).astype(np.float32)
+        if not np.isfinite(d).any():
+            raise InvalidInputError(source, "depth map has no valid pixel (all 0/NaN/negative)")
+    if frame.mask is not None:
+        d = np.where(frame.mask, d, np.float32(np.nan)).astype(np.float32)
+    return d
+
+
+# ---------------------------------------------------------------------------- batch
+def update_step(
+    model: TsdfModel,
+    camera: Camera,
+    frames: Iterable[Frame],
+    depth_source: Callable[[Frame], np.ndarray],
+    cfg: UpdateConfig = UpdateConfig(),  # noqa: B008 - frozen dataclass
+    progress: Callable[[Iterable], Iterable] | None = None,
+    keep_maps: bool = False,
+) -> tuple[TsdfModel, StepReport]:
+    """Apply one surgical step (one sequence) to ``model``; returns (new model, report).
+
+    ``model`` is not modified. All frames are validated (poses rigid and inside the
+    model's volume, depth plausible) before anything is fused, so bad input raises
+    without a half-updated result. Raises :class:`EmptyResultError` when no frame of the
+    step could be used.
+    """
+    frames = list(frames)
+    if not frames:
+        raise InvalidInputError("frames", "a step needs at least one frame")
+    metric = is_metric(depth_source)
+    poses = [
+        check_pose_in_model(model, f.T_world_from_cam, f"frame {f.index} pose") for f in frames
+    ]
+    estimates = [validate_estimate(depth_source(f), f, camera, metric) for f in frames]
+    upd = ChiselUpdater(model, camera, depth_source, cfg)
+    renders: list[np.ndarray | None] = [None] * len(frames)
+    F = None
+    seq_reg = None
+    if cfg.register:
+        renderer = ModelRenderer(model)
+        renders = [renderer.render(camera, T) for T in poses]
+        C = np.eye(4)
+        if cfg.sequence_ransac:
+            C, seq_reg = _sequence_registration(renderer, camera, poses, estimates, renders, cfg)
+        F, he = _hand_eye(
+            renderer, camera, poses, estimates, renders, C, cfg, is_metric(depth_source)
+        )
+        seq_reg = {**(seq_reg or {}), "hand_eye": he}
+    upd.begin_step(hand_eye=F, fixed=F is not None, sequence_registration=seq_reg)
+    items = list(zip(frames, estimates, renders, strict=True))
+    for f, E, R in progress(items) if progress is not None else items:
+        upd.process(f, estimate=E, render_mm=R, keep_maps=keep_maps)
+    report = upd.end_step()
+    return upd.model, report
+
+
+def _hand_eye(
+    renderer: ModelRenderer,
+    camera: Camera,
+    poses: list[np.ndarray],
+    estimates: list[np.ndarray],
+    renders: list[np.ndarray],
+    C_seq: np.ndarray,
+    cfg: UpdateConfig,
+    metric: bool,
+) -> tuple[np.ndarray | None, dict]:
+    """Camera-side correction F: robust mean of per-frame ICP corrections from ``C_seq``.
+
+    A world-side correction cannot represent a constant hand-eye error for frames with
+    different orientations; F can. Frames are registered without a prior (coarser point
+    sampling), and the median of their camera-side corrections is F.
+    """
+    rcfg = cfg.registration
+    scale_free = cfg.solve_scale == "always" or (cfg.solve_scale == "auto" and not metric)
+    Fs = []
+    for T, E, R in zip(poses, estimates, renders, strict=True):
+        try:
+            s0, _ = solve_scale(R, E, cfg.change.threshold_mm)
+        except EmptyResultError:
+            continue
+        src = _points(camera, s0 * E, T, cfg.sequence_stride_px)
+        if len(src) < 10:
+            continue
+        sim = icp_similarity(src, T[:3, 3], renderer.index, C_seq, rcfg, estimate_scale=scale_free)
+        res = check_result(
+            sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg
+        )
+        if res.ok:
+            Fs.append(invert_rigid(T) @ res.T_model_from_est @ T)
+    if not Fs:
+        return None, {"ok": False, "frames": 0, "reason": "no frame registered in the first pass"}
+    F = robust_mean_transform(Fs)
+    return F, {"ok": True, "frames": len(Fs), "T_cam_from_corrected_cam": F.tolist()}
+
+
+def _sequence_registration(
+    renderer: ModelRenderer,
+    camera: Camera,
+    poses: list[np.ndarray],
+    estimates: list[np.ndarray],
+    renders: list[np.ndarray],
+    cfg: UpdateConfig,
+) -> tuple[np.ndarray, dict]:
+    """RANSAC + ICP of the whole step's scaled estimates onto the model surface."""
+    pts = []
+    for T, E, R in zip(poses, estimates, renders, strict=True):
+        try:
+            s, _ = solve_scale(R, E, cfg.change.threshold_mm)
+        except EmptyResultError:
+            continue
+        pts.append(_points(camera, s * E, T, cfg.sequence_stride_px))
+    if not pts:
+        return np.eye(4), {"ok": False, "reason": "no frame overlaps the model render"}
+    src = np.concatenate(pts)
+    lo, hi = src.min(axis=0) - 5.0, src.max(axis=0) + 5.0
+    tv, tn = renderer.surface_points(lo, hi)
+    if len(tv) < 10:
+        return np.eye(4), {"ok": False, "reason": "no model surface near the estimate"}
+    res = register_global(src, tv, tn, cfg.registration)
+    out = res.to_dict()
+    if not res.ok:
+        log.warning(
+            "sequence-level registration failed (%s); per-frame ICP from the tracker", res.reason
+        )
+        return np.eye(4), out
+    return res.T_model_from_est, out
