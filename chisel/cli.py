@@ -17,6 +17,7 @@ _COMMAND_MODULES: list[str] = [
     # "module.path" providing register(subparsers: argparse._SubParsersAction) -> None
     "chisel.commands.importers",
     "chisel.commands.depth",
+    "chisel.commands.evaluate",
 ]
 
 _DESCRIPTION = """\

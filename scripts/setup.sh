@@ -11,8 +11,9 @@ if [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
 # libusb-1.0-0: Open3D's wheel links it at import.
 # libllvm19: drjit 1.5 (Mitsuba 3.9) aborts with the system LLVM 15; LLVM 19 works.
 # chromium: the workflow report test opens the HTML report headless.
+# chromium-driver: the report test drives it with selenium to read the browser console.
 need=()
-for pkg in libusb-1.0-0 libllvm19 chromium; do
+for pkg in libusb-1.0-0 libllvm19 chromium chromium-driver; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if [ "${#need[@]}" -gt 0 ]; then
