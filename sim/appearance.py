@@ -1,0 +1,133 @@
+"""Procedural tissue appearance: a seeded 3D colour texture and randomised looks.
+
+The mucosa colour is a 3D texture (a Mitsuba ``volume`` texture over a grid that covers
+the phantom), so it needs no UV map and is identical on the tissue that stays the same
+from one surgical step to the next (same box, same seed). It combines:
+
+- low-frequency colour variation (multi-octave smooth noise, slightly redder/paler);
+- a vessel network: the zero set of a smooth 3D noise field cuts the tissue surface in
+  curves; ``exp(-(n / width)^2)`` turns the field into thin dark-red lines, plus a finer,
+  fainter second network (capillaries).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from sim.config import AppearanceConfig, SimConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class TextureVolume:
+    """A baked colour volume over an axis-aligned world box."""
+
+    rgb: np.ndarray
+    """(nz, ny, nx, 3) float32 linear RGB in [0, 1]; index [k, j, i] = voxel (x_i, y_j, z_k)."""
+    box_mm: np.ndarray
+    """(2, 3) float64 [[xmin, ymin, zmin], [xmax, ymax, zmax]] the grid spans, mm."""
+
+    @property
+    def voxel_mm(self) -> np.ndarray:
+        """(3,) float64 voxel size along x, y, z, mm."""
+        shape_xyz = np.array(self.rgb.shape[2::-1], dtype=np.float64)
+        return (self.box_mm[1] - self.box_mm[0]) / shape_xyz
+
+
+def _bspline_matrix(n_out: int, step: float) -> tuple[np.ndarray, int]:
+    """(n_out, n_lat) cubic B-spline weights sampling a lattice of spacing ``step`` voxels."""
+    t = np.arange(n_out, dtype=np.float64) / step + 1.0
+    i = np.floor(t).astype(int)
+    f = t - i
+    w = (
+        np.stack(
+            [(1 - f) ** 3, 3 * f**3 - 6 * f**2 + 4, -3 * f**3 + 3 * f**2 + 3 * f + 1, f**3], axis=1
+        )
+        / 6.0
+    )
+    n_lat = int(i.max()) + 3
+    M = np.zeros((n_out, n_lat), dtype=np.float32)
+    rows = np.repeat(np.arange(n_out), 4)
+    cols = (i[:, None] + np.arange(-1, 3)[None, :]).ravel()
+    np.add.at(M, (rows, cols), w.ravel())
+    return M, n_lat
+
+
+def _smooth_noise(
+    rng: np.random.Generator, shape: tuple[int, int, int], voxel_mm: float, scale_mm: float
+) -> np.ndarray:
+    """Zero-mean, unit-std smooth noise on a grid of ``shape`` (z, y, x), features ~scale_mm.
+
+    A random lattice with spacing ``scale_mm`` is sampled with a cubic B-spline (C2, so
+    iso-lines are smooth curves), separably: three small matrix products.
+    """
+    step = max(scale_mm / voxel_mm, 1.0)
+    mats = [_bspline_matrix(n, step) for n in shape]
+    lattice = rng.normal(size=tuple(m[1] for m in mats)).astype(np.float32)
+    out = lattice @ mats[2][0].T  # (Lz, Ly, nx)
+    out = mats[1][0] @ out  # (Lz, ny, nx)
+    out = (mats[0][0] @ out.reshape(out.shape[0], -1)).reshape(shape)
+    out -= out.mean()
+    out /= max(float(out.std()), 1e-6)
+    return out.astype(np.float32)
+
+
+def texture_volume(box_mm: np.ndarray, cfg: AppearanceConfig, seed: int) -> TextureVolume:
+    """Bake the mucosa colour over ``box_mm`` ((2, 3) float, mm) with a seeded pattern.
+
+    The voxel size is ``cfg.texture_voxel_mm``, coarsened so the grid stays within
+    ``cfg.max_texture_voxels``. Same box, config and seed -> same bytes.
+    """
+    box = np.asarray(box_mm, dtype=np.float64)
+    extent = np.maximum(box[1] - box[0], 1e-3)
+    voxel = max(cfg.texture_voxel_mm, float((np.prod(extent) / cfg.max_texture_voxels) ** (1 / 3)))
+    nxyz = np.maximum(np.ceil(extent / voxel).astype(int), 2)
+    shape = (int(nxyz[2]), int(nxyz[1]), int(nxyz[0]))
+    box = np.stack([box[0], box[0] + nxyz * voxel])
+    rng = np.random.default_rng([int(seed), 7])
+    var1 = _smooth_noise(rng, shape, voxel, cfg.variation_scale_mm)
+    var2 = _smooth_noise(rng, shape, voxel, cfg.variation_scale_mm * 3.0)
+    ves1 = _smooth_noise(rng, shape, voxel, cfg.vessel_scale_mm)
+    ves2 = _smooth_noise(rng, shape, voxel, cfg.vessel_scale_mm * 0.45)
+    base = np.asarray(cfg.albedo_rgb, dtype=np.float32)
+    # Brightness varies with var1; redness (red up, green/blue down) with var2.
+    bright = 1.0 + cfg.color_variation * 0.6 * var1
+    red = cfg.color_variation * 0.4 * var2
+    rgb = np.empty(shape + (3,), dtype=np.float32)
+    rgb[..., 0] = base[0] * bright * (1.0 + 0.5 * red)
+    rgb[..., 1] = base[1] * bright * (1.0 - red)
+    rgb[..., 2] = base[2] * bright * (1.0 - red)
+    w = cfg.vessel_width
+    vessels = np.maximum(np.exp(-((ves1 / w) ** 2)), 0.5 * np.exp(-((ves2 / (0.6 * w)) ** 2)))
+    weight = (cfg.vessel_strength * vessels)[..., None]
+    rgb = (1.0 - weight) * rgb + weight * np.asarray(cfg.vessel_rgb, dtype=np.float32)
+    return TextureVolume(np.clip(rgb, 0.0, 1.0).astype(np.float32), box)
+
+
+def randomize(cfg: SimConfig, seed: int) -> SimConfig:
+    """Copy of ``cfg`` with appearance, light and sensor drawn from ``cfg.randomization``.
+
+    Used for training data (one draw per sequence). Same seed -> same draw.
+    """
+    r = cfg.randomization
+    rng = np.random.default_rng([int(seed), 11])
+
+    def u(rr: tuple[float, float]) -> float:
+        return float(rng.uniform(rr[0], rr[1]))
+
+    scale, hue = u(r.albedo_scale), u(r.hue_shift)
+    a0 = np.asarray(cfg.appearance.albedo_rgb) * scale
+    albedo = np.clip(a0 * np.array([1.0 + hue, 1.0 - hue, 1.0 - hue]), 0.02, 0.98)
+    appearance = dataclasses.replace(
+        cfg.appearance,
+        albedo_rgb=tuple(float(x) for x in albedo),
+        vessel_strength=u(r.vessel_strength),
+        roughness=u(r.roughness),
+        specular=u(r.specular),
+    )
+    light = dataclasses.replace(cfg.light, intensity=cfg.light.intensity * u(r.light_scale))
+    imaging = dataclasses.replace(
+        cfg.imaging, exposure=u(r.exposure), shot_noise=u(r.shot_noise), read_noise=u(r.read_noise)
+    )
+    return dataclasses.replace(cfg, appearance=appearance, light=light, imaging=imaging)

@@ -1,0 +1,533 @@
+"""Simulator configuration: small frozen dataclasses, loadable from YAML.
+
+A YAML file mirrors :class:`SimConfig`: one mapping per section (``camera``, ``light``,
+``appearance``, ``imaging``, ``randomization``, ``tracking``, ``paths``) plus ``seed``.
+Missing keys keep their defaults; unknown keys are refused (:class:`ConfigError`), so a
+typo never passes silently. ``config/sim_default.yaml`` lists every key with its default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+
+from chisel.geometry import Camera
+from sim.errors import ConfigError
+
+Range = tuple[float, float]
+
+
+def _check(cond: bool, name: str, problem: str) -> None:
+    if not cond:
+        raise ConfigError(name, problem)
+
+
+def _check_range(name: str, r: Range, lo: float = -math.inf, hi: float = math.inf) -> None:
+    _check(
+        len(r) == 2 and all(math.isfinite(float(x)) for x in r),
+        name,
+        f"expected a [min, max] pair of finite numbers, got {list(r)}",
+    )
+    _check(lo <= r[0] <= r[1] <= hi, name, f"expected {lo} <= min <= max <= {hi}, got {list(r)}")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Endoscope camera: pinhole intrinsics, OpenCV distortion, field stop, vignetting."""
+
+    width: int = 320
+    """Image width in pixels."""
+    height: int = 256
+    """Image height in pixels."""
+    fov_deg: float = 85.0
+    """Diagonal field of view of the undistorted pinhole model, degrees (endoscopes: 70-90)."""
+    principal_offset_px: tuple[float, float] = (2.5, -1.5)
+    """Shift of the principal point (cx, cy) from the image centre, pixels."""
+    dist: tuple[float, float, float, float, float] = (-0.18, 0.04, 0.0004, -0.0003, 0.0)
+    """OpenCV distortion k1, k2, p1, p2, k3 (barrel: k1 < 0); all zeros = none."""
+    K: tuple[tuple[float, float, float], ...] | None = None
+    """Optional explicit 3x3 intrinsics (pixels); overrides ``fov_deg``/``principal_offset_px``."""
+    field_stop_radius_frac: float = 0.75
+    """Radius of the circular field stop as a fraction of half the image diagonal."""
+    field_stop_center_offset_px: tuple[float, float] = (0.0, 0.0)
+    """Offset of the field-stop centre from the image centre, pixels."""
+    vignetting: float = 0.45
+    """Brightness loss at the field-stop edge: gain = 1 - vignetting * (r / r_stop)^2."""
+    near_clip_mm: float = 0.05
+    """Near clip distance of the Mitsuba sensor, mm (the scope never gets this close)."""
+    max_render_upscale: float = 3.0
+    """Refuse distortions whose undistorted render grid exceeds this many times the pixels."""
+
+    def __post_init__(self) -> None:
+        _check(
+            int(self.width) >= 8 and int(self.height) >= 8,
+            "camera.width/height",
+            f"image must be at least 8x8 pixels, got {self.width}x{self.height}",
+        )
+        _check(
+            1.0 < self.fov_deg < 170.0, "camera.fov_deg", f"must be in (1, 170), got {self.fov_deg}"
+        )
+        _check(
+            len(self.dist) == 5,
+            "camera.dist",
+            f"expected 5 OpenCV coefficients, got {list(self.dist)}",
+        )
+        _check(
+            0.05 <= self.field_stop_radius_frac <= 2.0,
+            "camera.field_stop_radius_frac",
+            f"must be in [0.05, 2], got {self.field_stop_radius_frac}",
+        )
+        _check(
+            0.0 <= self.vignetting < 1.0,
+            "camera.vignetting",
+            f"must be in [0, 1), got {self.vignetting}",
+        )
+        _check(
+            0.0 < self.near_clip_mm < 2.0,
+            "camera.near_clip_mm",
+            f"must be in (0, 2) mm, got {self.near_clip_mm}",
+        )
+        _check(
+            self.max_render_upscale >= 1.0,
+            "camera.max_render_upscale",
+            f"must be >= 1, got {self.max_render_upscale}",
+        )
+        if self.K is not None:
+            K = np.asarray(self.K, dtype=float)
+            _check(K.shape == (3, 3), "camera.K", f"expected a 3x3 matrix, got shape {K.shape}")
+            cx, cy = K[0, 2], K[1, 2]
+            # A principal point outside the image means K was made for another image size.
+            _check(
+                0.0 <= cx <= self.width - 1 and 0.0 <= cy <= self.height - 1,
+                "camera.K",
+                f"principal point ({cx:g}, {cy:g}) lies outside the {self.width}x{self.height} "
+                f"image: the intrinsics do not match the image size",
+            )
+        self.camera()  # validates K and dist through chisel.geometry.Camera
+
+    def camera(self) -> Camera:
+        """The :class:`chisel.geometry.Camera` this configuration describes."""
+        dist = np.asarray(self.dist, dtype=np.float64)
+        if self.K is not None:
+            return Camera(int(self.width), int(self.height), np.asarray(self.K, float), dist)
+        return Camera.from_fov(
+            int(self.width),
+            int(self.height),
+            float(self.fov_deg),
+            (float(self.principal_offset_px[0]), float(self.principal_offset_px[1])),
+            dist,
+        )
+
+    def field_stop(self) -> tuple[float, float, float]:
+        """(centre u, centre v, radius) of the field stop, pixels."""
+        cu = (self.width - 1) / 2.0 + self.field_stop_center_offset_px[0]
+        cv = (self.height - 1) / 2.0 + self.field_stop_center_offset_px[1]
+        r = self.field_stop_radius_frac * 0.5 * math.hypot(self.width, self.height)
+        return cu, cv, r
+
+
+@dataclass(frozen=True)
+class LightConfig:
+    """Spot light at the scope tip, moving with the camera (near-field, inverse square)."""
+
+    offset_mm: tuple[float, float, float] = (0.0, 1.2, 0.0)
+    """Light position in the camera frame (OpenCV axes), mm: beside the lens, not on it."""
+    intensity: float = 500.0
+    """Radiant intensity on the axis (linear units per steradian); irradiance = I / d^2."""
+    cutoff_deg: float = 80.0
+    """Half-angle where the spot light's cone ends, degrees."""
+    beam_width_deg: float = 60.0
+    """Half-angle of the spot's full-intensity core, degrees (smooth falloff beyond)."""
+
+    def __post_init__(self) -> None:
+        _check(
+            len(self.offset_mm) == 3,
+            "light.offset_mm",
+            f"expected 3 numbers, got {list(self.offset_mm)}",
+        )
+        _check(
+            float(np.linalg.norm(self.offset_mm)) < 2.0,
+            "light.offset_mm",
+            "the light must sit within 2 mm of the optical centre (inside the scope's clearance)",
+        )
+        _check(self.intensity > 0, "light.intensity", f"must be > 0, got {self.intensity}")
+        _check(
+            0 < self.beam_width_deg <= self.cutoff_deg < 90,
+            "light.beam_width_deg/cutoff_deg",
+            f"need 0 < beam_width <= cutoff < 90, got {self.beam_width_deg}, {self.cutoff_deg}",
+        )
+
+
+@dataclass(frozen=True)
+class AppearanceConfig:
+    """Wet mucosa: principled BSDF over a seeded 3D procedural colour/vessel texture."""
+
+    albedo_rgb: tuple[float, float, float] = (0.75, 0.2, 0.13)
+    """Mean diffuse colour of mucosa, linear RGB in [0, 1]."""
+    color_variation: float = 0.18
+    """Relative amplitude of the low-frequency colour variation (0 = uniform)."""
+    variation_scale_mm: float = 4.0
+    """Feature size of the colour variation, mm."""
+    vessel_strength: float = 0.6
+    """Blend weight of vessels at their centre line (0 = no vessels)."""
+    vessel_scale_mm: float = 6.0
+    """Spacing of the vessel network, mm."""
+    vessel_width: float = 0.07
+    """Vessel half-width in units of the vessel noise (0.03 thin .. 0.15 wide)."""
+    vessel_rgb: tuple[float, float, float] = (0.35, 0.03, 0.03)
+    """Colour of vessels, linear RGB."""
+    roughness: float = 0.3
+    """Principled BSDF roughness (low = sharp wet highlights)."""
+    specular: float = 0.5
+    """Principled BSDF specular amount (mucus film)."""
+    texture_voxel_mm: float = 0.3
+    """Voxel size of the baked 3D texture volume, mm (coarsened to fit ``max_texture_voxels``)."""
+    max_texture_voxels: int = 6_000_000
+    """Cap on the texture volume's voxel count (memory: 12 bytes per voxel)."""
+
+    def __post_init__(self) -> None:
+        for name in ("albedo_rgb", "vessel_rgb"):
+            v = getattr(self, name)
+            _check(
+                len(v) == 3 and all(0.0 <= x <= 1.0 for x in v),
+                f"appearance.{name}",
+                f"expected 3 values in [0, 1], got {list(v)}",
+            )
+        _check(
+            0.0 <= self.color_variation <= 1.0,
+            "appearance.color_variation",
+            f"must be in [0, 1], got {self.color_variation}",
+        )
+        _check(
+            0.0 <= self.vessel_strength <= 1.0,
+            "appearance.vessel_strength",
+            f"must be in [0, 1], got {self.vessel_strength}",
+        )
+        _check(
+            self.variation_scale_mm > 0 and self.vessel_scale_mm > 0,
+            "appearance.*_scale_mm",
+            "scales must be > 0 mm",
+        )
+        _check(
+            0.0 < self.vessel_width < 1.0,
+            "appearance.vessel_width",
+            f"must be in (0, 1), got {self.vessel_width}",
+        )
+        _check(
+            0.0 < self.roughness <= 1.0,
+            "appearance.roughness",
+            f"must be in (0, 1], got {self.roughness}",
+        )
+        _check(
+            0.0 <= self.specular <= 1.0,
+            "appearance.specular",
+            f"must be in [0, 1], got {self.specular}",
+        )
+        _check(
+            self.texture_voxel_mm > 0,
+            "appearance.texture_voxel_mm",
+            f"must be > 0, got {self.texture_voxel_mm}",
+        )
+        _check(
+            self.max_texture_voxels >= 1000,
+            "appearance.max_texture_voxels",
+            f"must be >= 1000, got {self.max_texture_voxels}",
+        )
+
+
+@dataclass(frozen=True)
+class ImagingConfig:
+    """Sensor model applied after rendering: exposure, noise, gamma; and the sampling budget."""
+
+    spp: int = 16
+    """Samples per pixel of the RGB render (direct lighting)."""
+    exposure: float = 1.0
+    """Linear gain applied to rendered radiance before the sensor noise."""
+    shot_noise: float = 0.003
+    """Shot-noise scale: std = sqrt(shot_noise * signal), signal in [0, 1]."""
+    read_noise: float = 0.002
+    """Read-noise std, in [0, 1] signal units."""
+    gamma: float = 2.2
+    """Display gamma applied before 8-bit quantisation."""
+    auto_exposure: bool = True
+    """Scale each frame so the mean signal inside the field stop is ``ae_target`` (like a
+    real endoscope camera's auto exposure, gain limited to [0.05, 20]); ``exposure`` then
+    multiplies that gain."""
+    ae_target: float = 0.2
+    """Auto-exposure target: mean linear signal inside the field stop."""
+
+    def __post_init__(self) -> None:
+        _check(1 <= self.spp <= 4096, "imaging.spp", f"must be in [1, 4096], got {self.spp}")
+        _check(self.exposure > 0, "imaging.exposure", f"must be > 0, got {self.exposure}")
+        _check(
+            self.shot_noise >= 0 and self.read_noise >= 0, "imaging.*_noise", "noise must be >= 0"
+        )
+        _check(0.5 <= self.gamma <= 4.0, "imaging.gamma", f"must be in [0.5, 4], got {self.gamma}")
+        _check(
+            0.0 < self.ae_target < 1.0,
+            "imaging.ae_target",
+            f"must be in (0, 1), got {self.ae_target}",
+        )
+
+
+@dataclass(frozen=True)
+class RandomizationConfig:
+    """Ranges sampled per sequence for training data (``sim dataset``); each a [min, max]."""
+
+    enabled: bool = False
+    """Sample appearance per sequence from these ranges (``render`` keeps the fixed values)."""
+    albedo_scale: Range = (0.8, 1.15)
+    """Multiplier of the mucosa albedo."""
+    hue_shift: Range = (-0.06, 0.06)
+    """Shift of red towards green/blue in the albedo (fraction of the channel value)."""
+    vessel_strength: Range = (0.25, 0.85)
+    """Vessel blend weight."""
+    roughness: Range = (0.15, 0.5)
+    """BSDF roughness."""
+    specular: Range = (0.3, 0.8)
+    """BSDF specular amount."""
+    light_scale: Range = (0.6, 1.6)
+    """Multiplier of the light intensity."""
+    exposure: Range = (0.7, 1.4)
+    """Exposure gain."""
+    shot_noise: Range = (0.0005, 0.01)
+    """Shot-noise scale."""
+    read_noise: Range = (0.0005, 0.006)
+    """Read-noise std."""
+
+    def __post_init__(self) -> None:
+        bounds = {
+            "albedo_scale": (0.1, 3.0),
+            "hue_shift": (-0.5, 0.5),
+            "vessel_strength": (0.0, 1.0),
+            "roughness": (0.01, 1.0),
+            "specular": (0.0, 1.0),
+            "light_scale": (0.01, 100.0),
+            "exposure": (0.01, 100.0),
+            "shot_noise": (0.0, 1.0),
+            "read_noise": (0.0, 1.0),
+        }
+        for name, (lo, hi) in bounds.items():
+            _check_range(f"randomization.{name}", getattr(self, name), lo, hi)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """How the navigation system's reported poses differ from the true ones."""
+
+    jitter_mm: float = 0.2
+    """Per-frame optical-tracking jitter: std per axis of the translation, mm."""
+    jitter_deg: float = 0.1
+    """Per-frame jitter: std per axis of the rotation vector, degrees."""
+    handeye_mm: float = 0.5
+    """Constant hand-eye calibration error: translation magnitude, mm (random direction)."""
+    handeye_deg: float = 0.5
+    """Constant hand-eye calibration error: rotation angle, degrees (random axis)."""
+    latency_frames: int = 0
+    """Tracking latency: frame i reports the true pose of frame max(i - latency, 0)."""
+
+    def __post_init__(self) -> None:
+        for name in ("jitter_mm", "jitter_deg", "handeye_mm", "handeye_deg"):
+            v = getattr(self, name)
+            _check(
+                math.isfinite(v) and v >= 0,
+                f"tracking.{name}",
+                f"must be a finite number >= 0, got {v}",
+            )
+        _check(
+            int(self.latency_frames) >= 0,
+            "tracking.latency_frames",
+            f"must be >= 0, got {self.latency_frames}",
+        )
+
+
+@dataclass(frozen=True)
+class PathConfig:
+    """Camera paths: preoperative sweep, intraoperative sequences, evaluation poses."""
+
+    clearance_mm: float = 2.0
+    """Minimum distance of the optical centre from tissue, mm (4 mm scope shaft)."""
+    preop_frames: int = 60
+    """Frames of the preoperative sweep along the airway."""
+    intraop_frames: int = 80
+    """Frames per intraoperative sequence (one per surgical step)."""
+    eval_poses: int = 8
+    """Fixed evaluation poses viewing the ROI, the same for every step."""
+    lookahead_mm: float = 10.0
+    """During the sweep the camera looks at the path point this far ahead, mm."""
+    turn_fraction: float = 0.3
+    """Last fraction of the sweep over which the view turns from ahead to the target."""
+    view_distance_mm: Range = (6.0, 16.0)
+    """Distance of intraoperative/evaluation viewpoints from the target centre, mm."""
+    viewpoint_spread_mm: float = 6.0
+    """Radius of the ball around the approach point where viewpoints are drawn, mm."""
+    aim_jitter_mm: float = 2.0
+    """Random offset of the aim point around the target (kept inside the ROI box), mm."""
+    keyframes: int = 5
+    """Keyframes of an intraoperative path (a smooth spline runs through them)."""
+    roll_deg: float = 20.0
+    """Amplitude of the smooth roll of the scope about its axis, degrees."""
+    up_hint: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    """World direction the image's up (-y) starts closest to (then transported smoothly)."""
+    max_tries: int = 200
+    """Attempts at drawing a collision-free intraoperative path before giving up."""
+
+    def __post_init__(self) -> None:
+        _check(
+            self.clearance_mm > 0, "paths.clearance_mm", f"must be > 0 mm, got {self.clearance_mm}"
+        )
+        for name in ("preop_frames", "intraop_frames", "eval_poses", "keyframes", "max_tries"):
+            _check(
+                int(getattr(self, name)) >= 1,
+                f"paths.{name}",
+                f"must be >= 1, got {getattr(self, name)}",
+            )
+        _check(int(self.keyframes) >= 2, "paths.keyframes", f"must be >= 2, got {self.keyframes}")
+        _check(self.lookahead_mm > 0, "paths.lookahead_mm", f"must be > 0, got {self.lookahead_mm}")
+        _check(
+            0.0 <= self.turn_fraction <= 1.0,
+            "paths.turn_fraction",
+            f"must be in [0, 1], got {self.turn_fraction}",
+        )
+        _check_range("paths.view_distance_mm", self.view_distance_mm, 0.5, 200.0)
+        _check(
+            self.viewpoint_spread_mm >= 0 and self.aim_jitter_mm >= 0,
+            "paths.*_mm",
+            "spreads must be >= 0",
+        )
+        _check(
+            0.0 <= self.roll_deg <= 180.0,
+            "paths.roll_deg",
+            f"must be in [0, 180], got {self.roll_deg}",
+        )
+        _check(
+            float(np.linalg.norm(self.up_hint)) > 0, "paths.up_hint", "must be a non-zero vector"
+        )
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything the renderer needs besides the phantom; ``sim render --config`` loads it."""
+
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    """Endoscope camera."""
+    light: LightConfig = field(default_factory=LightConfig)
+    """Tip light."""
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    """Tissue appearance."""
+    imaging: ImagingConfig = field(default_factory=ImagingConfig)
+    """Sensor model and sampling."""
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    """Appearance randomisation ranges (training data)."""
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    """Tracked-pose noise."""
+    paths: PathConfig = field(default_factory=PathConfig)
+    """Camera paths."""
+    seed: int = 0
+    """Master seed: paths, texture, tracking noise and sensor noise derive from it."""
+    depth_only: bool = False
+    """Render depth (and masks) only, no RGB."""
+    variant: Literal["auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"] = "auto"
+    """Mitsuba variant; ``auto`` probes cuda, then llvm, then falls back to scalar (warned)."""
+
+    def __post_init__(self) -> None:
+        _check(
+            isinstance(self.seed, int) and self.seed >= 0,
+            "seed",
+            f"must be an integer >= 0, got {self.seed!r}",
+        )
+        _check(
+            self.variant in ("auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"),
+            "variant",
+            f"expected auto, cuda_ad_rgb, llvm_ad_rgb or scalar_rgb, got {self.variant!r}",
+        )
+
+
+def _to_plain(value: Any) -> Any:
+    if is_dataclass(value):
+        return {f.name: _to_plain(getattr(value, f.name)) for f in fields(value)}
+    if isinstance(value, tuple | list):
+        return [_to_plain(v) for v in value]
+    return value
+
+
+def config_to_dict(cfg: SimConfig) -> dict[str, Any]:
+    """Plain nested dict (JSON/YAML-ready) of a configuration."""
+    return _to_plain(cfg)
+
+
+def _tupleize(value: Any) -> Any:
+    if isinstance(value, list):
+        return tuple(_tupleize(v) for v in value)
+    return value
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(where, f"expected a mapping, got {type(data).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ConfigError(where, f"unknown key(s) {unknown}; known keys: {sorted(known)}")
+    kwargs: dict[str, Any] = {}
+    for name, value in data.items():
+        default = (
+            known[name].default_factory()
+            if known[name].default_factory is not dataclasses.MISSING
+            else None
+        )  # type: ignore[misc]
+        sub = f"{where}.{name}" if where else name
+        if is_dataclass(default):
+            kwargs[name] = _build(type(default), value, sub)
+        else:
+            kwargs[name] = _tupleize(value)
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(where or "config", str(exc)) from None
+
+
+def config_from_dict(data: dict[str, Any]) -> SimConfig:
+    """Build a :class:`SimConfig` from a nested mapping; unknown keys raise ConfigError."""
+    return _build(SimConfig, data, "")
+
+
+def load_config(path: str | Path | None) -> SimConfig:
+    """Read a YAML configuration file (``None`` = defaults); raises :class:`ConfigError`."""
+    if path is None:
+        return SimConfig()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(p, "configuration file does not exist")
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(p, f"invalid YAML: {exc}") from None
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc.source}", exc.problem) from None
+
+
+def replace_in(cfg: SimConfig, **changes: Any) -> SimConfig:
+    """Copy of ``cfg`` with dotted-path changes, e.g. ``replace_in(cfg, **{"camera.width": 64})``."""
+    for key, value in changes.items():
+        if value is None:
+            continue
+        parts = key.split(".")
+        if len(parts) == 1:
+            cfg = dataclasses.replace(cfg, **{key: value})
+        else:
+            section = getattr(cfg, parts[0])
+            cfg = dataclasses.replace(
+                cfg, **{parts[0]: dataclasses.replace(section, **{parts[1]: value})}
+            )
+    return cfg
