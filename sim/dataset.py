@@ -1,0 +1,145 @@
+"""A training set for the depth network: many phantom seeds, randomised appearance.
+
+For every seed: generate a phantom by running the phantom generator's CLI in a
+subprocess (``python -m phantoms generate --seed S --bites N --out DIR/phantoms/seed_S``;
+``sim`` never imports ``phantoms``), draw an appearance from the config's randomisation
+ranges, and render its preoperative sweep and intraoperative sequences (RGB + depth,
+direct lighting). Layout::
+
+    DIR/dataset.json            format, version, sequences [{path, phantom_seed, kind, step,
+                                num_frames}], seeds, config
+    DIR/phantoms/seed_S/        the generated phantom
+    DIR/seed_S/                 a render folder (render.json, preop/, step_01/, ...)
+
+Each seed's render appears atomically; ``dataset.json`` is written last. With ``resume``
+seeds whose render folder is complete are kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from chisel.atomic import atomic_write_text
+from sim.appearance import randomize
+from sim.config import SimConfig, config_to_dict
+from sim.errors import ConfigError, PhantomError
+from sim.pipeline import render_phantom
+
+log = logging.getLogger(__name__)
+
+DATASET_FORMAT = "endoscopic-chisel/dataset"
+DATASET_VERSION = 1
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"100-119"``, ``"1,4,9"`` or ``"7"`` (and mixtures like ``"1-3,8"``) -> sorted seeds."""
+    seeds: set[int] = set()
+    try:
+        for part in str(text).split(","):
+            part = part.strip()
+            if not part:
+                continue
+            if "-" in part:
+                a, b = (int(x) for x in part.split("-", 1))
+                if b < a:
+                    raise ValueError(f"range {part} is reversed")
+                seeds.update(range(a, b + 1))
+            else:
+                seeds.add(int(part))
+    except ValueError as exc:
+        raise ConfigError(
+            "--seeds", f"expected e.g. '100-119' or '1,4,9', got {text!r} ({exc})"
+        ) from None
+    if not seeds or min(seeds) < 0:
+        raise ConfigError("--seeds", f"expected one or more seeds >= 0, got {text!r}")
+    return sorted(seeds)
+
+
+def generate_phantom(
+    seed: int, bites: int, out_dir: Path, phantom_cmd: str | None = None, extra_args: str = ""
+) -> Path:
+    """Run the phantom generator CLI for one seed; raises :class:`PhantomError` on failure."""
+    base = (
+        shlex.split(phantom_cmd) if phantom_cmd else [sys.executable, "-m", "phantoms", "generate"]
+    )
+    cmd = (
+        base
+        + ["--seed", str(seed), "--bites", str(bites), "--out", str(out_dir)]
+        + shlex.split(extra_args)
+    )
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0 or not (out_dir / "phantom.json").is_file():
+        tail = " | ".join((proc.stderr or proc.stdout).strip().splitlines()[-5:])
+        raise PhantomError(
+            out_dir, f"phantom generator failed (exit {proc.returncode}): {shlex.join(cmd)}: {tail}"
+        )
+    return out_dir
+
+
+def build_dataset(
+    out_dir: str | Path,
+    seeds: list[int],
+    cfg: SimConfig,
+    bites: int = 2,
+    phantom_cmd: str | None = None,
+    phantom_args: str = "",
+    resume: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Generate and render every seed; write and return ``dataset.json``'s content.
+
+    ``cfg.randomization`` ranges are sampled once per phantom seed (randomisation is
+    switched on here whatever ``cfg.randomization.enabled`` says).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = dataclasses.replace(
+        cfg, randomization=dataclasses.replace(cfg.randomization, enabled=True)
+    )
+    entries: list[dict[str, Any]] = []
+    for seed in tqdm(seeds, desc="dataset", unit="phantom", disable=not progress):
+        render_dir = out / f"seed_{seed}"
+        header_path = render_dir / "render.json"
+        if not (resume and header_path.is_file()):
+            phantom_dir = out / "phantoms" / f"seed_{seed}"
+            if not (resume and (phantom_dir / "phantom.json").is_file()):
+                generate_phantom(seed, bites, phantom_dir, phantom_cmd, phantom_args)
+            seq_cfg = dataclasses.replace(randomize(cfg, seed), seed=int(seed))
+            render_phantom(phantom_dir, render_dir, seq_cfg, include_eval=False, progress=progress)
+        header = json.loads(header_path.read_text())
+        names = [("preop", 0, header["sequences"]["preop"])] + [
+            ("intraop", int(k), v)
+            for k, v in sorted(header["sequences"]["steps"].items(), key=lambda kv: int(kv[0]))
+        ]
+        for kind, step, name in names:
+            seq_header = json.loads((render_dir / name / "sequence.json").read_text())
+            entries.append(
+                {
+                    "path": f"seed_{seed}/{name}",
+                    "phantom_seed": int(seed),
+                    "kind": kind,
+                    "step": step,
+                    "num_frames": int(seq_header["num_frames"]),
+                }
+            )
+    dataset = {
+        "format": DATASET_FORMAT,
+        "version": DATASET_VERSION,
+        "seeds": list(seeds),
+        "bites": int(bites),
+        "num_sequences": len(entries),
+        "num_frames": sum(e["num_frames"] for e in entries),
+        "sequences": entries,
+        "config": config_to_dict(cfg),
+    }
+    atomic_write_text(out / "dataset.json", json.dumps(dataset, indent=2) + "\n")
+    return dataset
