@@ -41,3 +41,16 @@ class FormatVersionError(InvalidInputError):
 
 class EmptyResultError(ChiselError, RuntimeError):
     """There is nothing to return (empty surface, no valid pixel, no registered frame)."""
+
+
+class OutputError(ChiselError, OSError):
+    """An output could not be written (disk full, unwritable folder); earlier files are kept.
+
+    Also an ``OSError`` with the original ``errno`` (e.g. ``ENOSPC``), so callers that
+    handle OS errors keep working.
+    """
+
+    def __init__(self, path: str | Path, exc: OSError) -> None:
+        self.source = str(path)
+        self.problem = f"cannot write output: {exc.strerror or exc}"
+        OSError.__init__(self, exc.errno, f"{self.source}: {self.problem}")

@@ -28,6 +28,7 @@ no partial folder and keeps an earlier one. ``.npy`` files are never unpickled.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import re
@@ -42,7 +43,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from chisel.atomic import atomic_dir
 from chisel.calibration import Calibration, read_calibration
-from chisel.errors import CameraError, InvalidInputError, PoseError
+from chisel.errors import CameraError, ChiselError, InvalidInputError, OutputError, PoseError
 from chisel.geometry import Camera, check_rigid
 from chisel.sequence import Frame, SequenceWriter, check_depth_mm
 from chisel.undistort import Circle, Undistortion, circle_mask, fit_field_stop, make_undistortion
@@ -617,6 +618,19 @@ FrameSource = ImageFolderSource | VideoSource
 # ----------------------------------------------------------------------------- import
 
 
+@contextlib.contextmanager
+def _output_errors(path: Path) -> Iterator[None]:
+    """Report a failed write (disk full, unwritable) as :class:`OutputError` on ``path``.
+
+    The writers are atomic, so the earlier output is still in place when this raises."""
+    try:
+        yield
+    except ChiselError:
+        raise
+    except OSError as exc:
+        raise OutputError(path, exc) from exc
+
+
 def _camera_mask_raw(
     source: FrameSource, raw: Camera, cfg: FrameConfig, camera_mask_path: Path | None
 ) -> tuple[np.ndarray | None, Circle | None]:
@@ -780,9 +794,12 @@ def import_frames(
         from tqdm import tqdm
 
         frames_iter = tqdm(frames_iter, total=source.count, desc="import", unit="frame")
-    with SequenceWriter(
-        out_path, camera, header_meta, camera_mask, bool(und) or not raw.has_distortion
-    ) as w:
+    with (
+        _output_errors(out_path),
+        SequenceWriter(
+            out_path, camera, header_meta, camera_mask, bool(und) or not raw.has_distortion
+        ) as w,
+    ):
         for i, rgb in frames_iter:
             n_source = i + 1
             if pose_cfg.match == "index" and i >= len(poses):
@@ -1066,7 +1083,7 @@ def import_reference(
         parts.append((f"step_{i}", args[str(i)]))
     root = input_json.absolute().parent
     done: list[ReferencePart] = []
-    with atomic_dir(out_dir) as tmp:
+    with _output_errors(Path(out_dir)), atomic_dir(out_dir) as tmp:
         for name, part in parts:
             done.append(
                 _import_reference_part(
