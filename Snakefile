@@ -1,0 +1,23 @@
+# Endoscopic Chisel: end-to-end synthetic benchmark of intraoperative model updating.
+#
+#   snakemake --cores 2                              # default experiment (config/config.yaml)
+#   snakemake --cores 2 --configfile config/smoke.yaml
+#   snakemake --cores 2 table | seqlen | posenoise | depthnoise | report
+#
+# Stages: phantom -> renders -> CT segmentation surface -> preop model -> update per bite
+# -> score -> report. Every rule calls a CLI of this project; outputs live under
+# results/<experiment>/. See docs/workflow.md.
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/phantom.smk"
+include: "workflow/rules/render.smk"
+include: "workflow/rules/preop.smk"
+include: "workflow/rules/update.smk"
+include: "workflow/rules/evaluate.smk"
+
+
+rule all:
+    default_target: True
+    input:
+        f"{RESULTS}/metrics.json",
+        f"{RESULTS}/report.html",

@@ -1,0 +1,93 @@
+MC = config["model"]
+DC = config.get("depth", {})
+
+
+rule ct_surface:
+    """CT segmentation surface from the preoperative CT volume (as a user with real CT would)."""
+    input:
+        manifest=rules.phantom.output.manifest,
+    output:
+        mesh=f"{RESULTS}/seed_{{seed}}/preop/ct_surface.ply",
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/ct_surface.log",
+    threads: 1
+    resources:
+        mem_mb=MEM_MB,
+    shell:
+        "{PY} -m chisel ct-surface --ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz "
+        "--out {output.mesh} > {log} 2>&1"
+
+
+rule preop_model:
+    input:
+        surface=rules.ct_surface.output.mesh,
+        index=rules.render.output.index,
+    output:
+        model=f"{RESULTS}/seed_{{seed}}/preop/model.npz",
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/preop_model.log",
+    params:
+        opts=f"--voxel-size-mm {MC['voxel_size_mm']} --trunc-mm {MC['trunc_mm']}",
+    threads: 2
+    resources:
+        mem_mb=MEM_MB,
+    shell:
+        "{PY} -m chisel build --surface {input.surface} --sequence $(dirname {input.index})/preop "
+        "{params.opts} --out {output.model} > {log} 2>&1"
+
+
+rule preop_ct_depth:
+    """The preop frames with the CT surface rendered at the tracked poses: fine-tuning labels."""
+    input:
+        surface=rules.ct_surface.output.mesh,
+        index=rules.render.output.index,
+    output:
+        seq=directory(f"{RESULTS}/seed_{{seed}}/preop/ct_depth_sequence"),
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/preop_ct_depth.log",
+    threads: 1
+    shell:
+        "{PY} -m chisel render-depth --mesh {input.surface} --sequence $(dirname {input.index})/preop "
+        "--out {output.seq} > {log} 2>&1"
+
+
+rule finetune:
+    """Per-patient fine-tuning of the depth network on the preop sequence (as the paper does)."""
+    input:
+        seq=rules.preop_ct_depth.output.seq,
+    output:
+        ckpt=f"{RESULTS}/seed_{{seed}}/depth/finetuned.pt",
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/finetune.log",
+    params:
+        base="" if DC.get("checkpoint", "default") == "default" else f"--checkpoint {DC['checkpoint']}",
+        epochs=DC.get("finetune_epochs", 3),
+        enabled=DC.get("finetune", True),
+    threads: 2
+    resources:
+        mem_mb=MEM_MB,
+    shell:
+        "{PY} -m chisel depth finetune {params.base} --sequence {input.seq} --epochs {params.epochs} "
+        "--seed {wildcards.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
+
+
+def network_checkpoint(wildcards):
+    return rules.finetune.output.ckpt.format(seed=wildcards.seed) if DC.get("finetune", True) else []
+
+
+rule predict_depth:
+    input:
+        index=rules.render.output.index,
+        ckpt=network_checkpoint,
+    output:
+        seq=directory(f"{RESULTS}/seed_{{seed}}/depth/pred/step_{{step}}"),
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/predict_step_{{step}}.log",
+    params:
+        ckpt=lambda wc, input: f"--checkpoint {input.ckpt}" if input.ckpt else (
+            "" if DC.get("checkpoint", "default") == "default" else f"--checkpoint {DC['checkpoint']}"
+        ),
+    threads: 2
+    shell:
+        "{PY} -m chisel depth predict {params.ckpt} --sequence $(dirname {input.index})/step_{wildcards.step} "
+        "--out {output.seq} > {log} 2>&1"

@@ -1,0 +1,40 @@
+RC = config["render"]
+
+
+rule render:
+    input:
+        manifest=rules.phantom.output.manifest,
+    output:
+        index=f"{RESULTS}/seed_{{seed}}/render/render.json",
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/render.log",
+    params:
+        opts=(
+            f"--width {RC['width']} --height {RC['height']} --frames {RC['frames']} "
+            f"--preop-frames {RC['preop_frames']} --eval-poses {RC['eval_poses']} "
+            f"--spp {RC.get('spp', 16)} --pose-noise-mm {RC.get('pose_noise_mm', 0.0)} "
+            f"--pose-noise-deg {RC.get('pose_noise_deg', 0.0)}"
+        ),
+    threads: 2
+    resources:
+        mem_mb=MEM_MB,
+    shell:
+        "{PY} -m sim render --phantom $(dirname {input.manifest}) --out $(dirname {output.index}) "
+        "--seed {wildcards.seed} {params.opts} > {log} 2>&1"
+
+
+rule retrack:
+    """Tracked poses with another amount of tracking noise (pose-noise sweep); same frames."""
+    input:
+        index=rules.render.output.index,
+    output:
+        seq=directory(f"{RESULTS}/seed_{{seed}}/retrack/{{noise}}/step_{{step}}"),
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/retrack_{{noise}}_step_{{step}}.log",
+    wildcard_constraints:
+        noise=r"[0-9.]+",
+    threads: 1
+    shell:
+        "{PY} -m sim retrack --sequence $(dirname {input.index})/step_{wildcards.step} "
+        "--pose-noise-mm {wildcards.noise} --pose-noise-deg {wildcards.noise} "
+        "--seed {wildcards.seed} --out {output.seq} > {log} 2>&1"

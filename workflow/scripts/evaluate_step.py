@@ -1,0 +1,26 @@
+"""Snakemake wrapper: score one surgical step (chisel.evaluate.evaluate_step)."""
+
+import json
+import logging
+
+from chisel.evaluate import evaluate_step, write_step_metrics
+
+sm = snakemake  # noqa: F821 - injected by Snakemake
+logging.basicConfig(filename=sm.log[0], level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+
+manifest = json.loads(open(sm.input.manifest).read())
+phantom_dir = sm.input.manifest.rsplit("/", 1)[0]
+step = int(sm.wildcards.step)
+steps = {s["step"]: s for s in manifest["steps"]}
+masks = dict(zip(sm.params.mask_methods, sm.input.masks, strict=True)) or None
+result = evaluate_step(
+    gt_mesh_path=f"{phantom_dir}/{steps[step]['mesh']}",
+    method_mesh_paths=dict(zip(sm.params.methods, sm.input.meshes, strict=True)),
+    eval_sequence_path=sm.params.eval_sequence,
+    roi_box_mm=[v for corner in manifest["roi_box_mm"] for v in corner],
+    step=step,
+    change_mask_paths=masks,
+    change_sequence_path=sm.params.change_sequence if masks else None,
+    prev_gt_mesh_path=f"{phantom_dir}/{steps[step - 1]['mesh']}" if masks else None,
+)
+write_step_metrics(sm.output.metrics, result)
