@@ -71,6 +71,12 @@ def solve_scale(
             f"only {int(valid.sum())} pixels are valid in both the render and the estimate "
             f"(need {MIN_SCALE_PIXELS}): cannot solve the scale"
         )
+    if valid.sum() > 20_000:
+        # Every other pixel: the median is just as good and four times cheaper.
+        sub = np.zeros_like(valid)
+        sub[::2, ::2] = True
+        if int((valid & sub).sum()) >= MIN_SCALE_PIXELS:
+            valid &= sub
     rv, ev = r[valid], e[valid]
     s = float(np.median(rv / ev))
     keep = np.ones(rv.shape, dtype=bool)
@@ -116,6 +122,62 @@ def reproject_depth(
     v = np.floor(uv[:, 1] + 0.5).astype(np.int64)
     out = np.full(camera.shape, np.nan, dtype=np.float32)
     return _zbuffer(u, v, z.astype(np.float32), camera.height, camera.width, out)
+
+
+@numba.njit(cache=True)
+def _warp_kernel(depth, rays, D, fx, fy, cx, cy, dist, out):
+    H, W = depth.shape
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for v in range(H):
+        for u in range(W):
+            d = depth[v, u]
+            if not (d > 0.0):
+                continue
+            x = rays[v, u, 0] * d
+            y = rays[v, u, 1] * d
+            z = rays[v, u, 2] * d
+            X = D[0, 0] * x + D[0, 1] * y + D[0, 2] * z + D[0, 3]
+            Y = D[1, 0] * x + D[1, 1] * y + D[1, 2] * z + D[1, 3]
+            Z = D[2, 0] * x + D[2, 1] * y + D[2, 2] * z + D[2, 3]
+            if Z <= 1e-6:
+                continue
+            xn = X / Z
+            yn = Y / Z
+            r2 = xn * xn + yn * yn
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+            yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+            uu = int(np.floor(fx * xd + cx + 0.5))
+            vv = int(np.floor(fy * yd + cy + 0.5))
+            if 0 <= uu < W and 0 <= vv < H:
+                cur = out[vv, uu]
+                if not (cur <= Z):
+                    out[vv, uu] = Z
+    return out
+
+
+def warp_depth(depth_mm: np.ndarray, camera: Camera, T_dst_from_src: np.ndarray) -> np.ndarray:
+    """Re-project a depth map of one pose of ``camera`` into another pose (z-buffered).
+
+    depth_mm : (H, W) float32 z-depth in the source camera, mm, NaN = invalid.
+    T_dst_from_src : (4, 4) float64 source camera frame -> destination camera frame.
+    Returns (H, W) float32 z-depth in the destination camera, NaN where nothing lands.
+    Same result as back-projecting, transforming and :func:`reproject_depth`, in one pass.
+    """
+    camera.check_image(depth_mm, "depth_mm")
+    d = np.nan_to_num(np.asarray(depth_mm, dtype=np.float64), nan=0.0)
+    out = np.full(camera.shape, np.nan, dtype=np.float32)
+    return _warp_kernel(
+        d,
+        np.ascontiguousarray(camera.rays_cam()),
+        np.ascontiguousarray(T_dst_from_src, dtype=np.float64),
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        np.ascontiguousarray(camera.dist, dtype=np.float64),
+        out,
+    )
 
 
 def impute(m_prime: np.ndarray, m_t: np.ndarray) -> np.ndarray:

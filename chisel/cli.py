@@ -18,6 +18,7 @@ _COMMAND_MODULES: list[str] = [
     "chisel.commands.importers",
     "chisel.commands.depth",
     "chisel.commands.evaluate",
+    "chisel.commands.model",
 ]
 
 _DESCRIPTION = """\

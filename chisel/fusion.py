@@ -52,6 +52,9 @@ def _integrate_kernel(
     r2_max,
     box,
     trunc_mm,
+    xb,
+    z_near,
+    z_far,
 ):
     # Inputs are sanitised by the caller: depth <= 0 means invalid (no NaN reaches here,
     # which keeps fastmath's no-NaN assumption true).
@@ -69,8 +72,43 @@ def _integrate_kernel(
         bx = R[0, 0] * i + R[0, 1] * j + t[0]
         by = R[1, 0] * i + R[1, 1] * j + t[1]
         bz = R[2, 0] * i + R[2, 1] * j + t[2]
+        # Along the column, X, Y, Z are linear in k; the frustum (the image's normalised
+        # bounds, z_near < Z < z_far) is an intersection of half-lines a + b k >= 0, so
+        # the visible k-interval is found without visiting the voxels outside it.
+        lo = float(k0)
+        hi = float(k1) - 1.0
+        for h in range(6):
+            if h == 0:
+                a = bz - z_near
+                b = R[2, 2]
+            elif h == 1:
+                a = z_far - bz
+                b = -R[2, 2]
+            elif h == 2:
+                a = bx - xb[0] * bz
+                b = R[0, 2] - xb[0] * R[2, 2]
+            elif h == 3:
+                a = xb[1] * bz - bx
+                b = xb[1] * R[2, 2] - R[0, 2]
+            elif h == 4:
+                a = by - xb[2] * bz
+                b = R[1, 2] - xb[2] * R[2, 2]
+            else:
+                a = xb[3] * bz - by
+                b = xb[3] * R[2, 2] - R[1, 2]
+            if b > 1e-12:
+                lo = max(lo, -a / b)
+            elif b < -1e-12:
+                hi = min(hi, -a / b)
+            elif a < 0.0:
+                hi = lo - 1.0
+        if hi < lo:
+            counts[col] = 0
+            continue
+        ka = max(k0, int(np.floor(lo)) - 1)
+        kb = min(k1, int(np.ceil(hi)) + 2)
         n = 0
-        for k in range(k0, k1):
+        for k in range(ka, kb):
             zc = bz + R[2, 2] * k
             if zc <= 1e-3:
                 continue
@@ -234,6 +272,16 @@ def integrate(
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
     rays = camera.rays_cam()
     r2_max = float(((rays[..., 0] ** 2 + rays[..., 1] ** 2).max()) * 1.02 + 1e-9)
+    # Normalised-coordinate bounds of the image (half a pixel beyond the border rays).
+    pad_x, pad_y = 0.5 / camera.fx, 0.5 / camera.fy
+    xb = np.array(
+        [
+            rays[..., 0].min() - pad_x,
+            rays[..., 0].max() + pad_x,
+            rays[..., 1].min() - pad_y,
+            rays[..., 1].max() + pad_y,
+        ]
+    )
     n = _integrate_kernel(
         model.tsdf,
         model.weight,
@@ -254,5 +302,8 @@ def integrate(
         r2_max,
         box,
         float(model.trunc_mm),
+        xb,
+        1e-3,
+        z_far,
     )
     return int(n)

@@ -35,8 +35,8 @@ class RegistrationConfig:
     """Correspondence distances of the coarse-to-fine ICP passes, mm."""
     tukey_k_mm: float = 0.5
     """Tukey kernel width of the point-to-plane ICP, mm: residuals beyond it count 0."""
-    icp_max_iter: int = 30
-    """ICP iterations per pass."""
+    icp_max_iter: int = 15
+    """ICP iterations per pass (at most)."""
     fitness_dist_mm: float = 1.5
     """Inlier distance used to report fitness (fraction of estimate points near the model)."""
     min_fitness: float = 0.3
@@ -45,7 +45,7 @@ class RegistrationConfig:
     """A correction moving the estimate's centroid further than this fails (implausible)."""
     max_correction_deg: float = 15.0
     """A correction rotating more than this fails (implausible for a tracked endoscope)."""
-    ransac_max_iter: int = 100_000
+    ransac_max_iter: int = 50_000
     """RANSAC iteration cap."""
     ransac_confidence: float = 0.999
     """RANSAC early-stop confidence."""
@@ -224,8 +224,8 @@ def register_global(
     o3d.utility.random.seed(int(cfg.seed))
     v = cfg.voxel_mm
     src_pcd = make_cloud(src).voxel_down_sample(v)
-    tgt_full = make_cloud(tgt, target_normals)
-    tgt_pcd = tgt_full.voxel_down_sample(v)
+    tgt_pcd = make_cloud(tgt, target_normals).voxel_down_sample(v)
+    tgt_pcd.normalize_normals()
     search = o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * v, max_nn=30)
     src_pcd.estimate_normals(search)
     src_f = _fpfh(src_pcd, v)
@@ -248,8 +248,9 @@ def register_global(
     center = src.mean(axis=0)
     candidates = []
     for name, start in (("ransac+icp", np.asarray(ransac.transformation)), ("icp", init)):
-        T = icp_refine(src_pcd, tgt_full, start, cfg)
-        fit, rmse = evaluate(src_pcd, tgt_full, T, cfg)
+        # The sequence-level result only seeds per-frame ICP: the 1-voxel target is enough.
+        T = icp_refine(src_pcd, tgt_pcd, start, cfg)
+        fit, rmse = evaluate(src_pcd, tgt_pcd, T, cfg)
         shift, ang = correction_size(T, center)
         plausible = shift <= cfg.max_correction_mm and ang <= cfg.max_correction_deg
         candidates.append((plausible, fit, -rmse, name, T))
@@ -359,7 +360,7 @@ def icp_similarity(
             it += 1
             y_rel = sigma * rel @ R.T
             y = y_rel + c_new
-            d, idx = surface.tree.query(y, distance_upper_bound=dist, workers=-1)
+            d, idx = surface.tree.query(y, distance_upper_bound=dist)
             ok = np.isfinite(d)
             if ok.sum() < 10:
                 break
@@ -394,7 +395,7 @@ def icp_similarity(
     T[:3, :3] = R
     T[:3, 3] = c_new - R @ c
     y = sigma * rel @ R.T + c_new
-    d, idx = surface.tree.query(y, distance_upper_bound=cfg.fitness_dist_mm, workers=-1)
+    d, idx = surface.tree.query(y, distance_upper_bound=cfg.fitness_dist_mm)
     ok = np.isfinite(d)
     fitness = float(ok.mean())
     if ok.any():

@@ -33,7 +33,7 @@ from typing import Literal
 import numpy as np
 import trimesh
 
-from chisel.change import ChangeConfig, change_mask, impute, reproject_depth, solve_scale
+from chisel.change import ChangeConfig, change_mask, impute, solve_scale, warp_depth
 from chisel.depth_source import is_metric
 from chisel.errors import EmptyResultError, InvalidInputError, PoseError
 from chisel.fusion import check_pose_in_model, integrate
@@ -98,14 +98,14 @@ class UpdateConfig:
     """Refine the depth scale jointly with the pose in per-frame ICP: "auto" = unless the
     depth source declares metric depth (``is_metric``). The initial robust median of
     ratios is always applied."""
-    stride_px: int = 3
-    """Pixel stride of the points used for per-frame registration (speed)."""
-    sequence_stride_px: int = 6
-    """Pixel stride of each frame's points in the sequence-level cloud."""
+    max_points: int = 1500
+    """About this many pixels (a regular stride) per frame in per-frame registration."""
+    sequence_points: int = 500
+    """About this many pixels per frame in the sequence-level registration stages."""
 
     def __post_init__(self) -> None:
-        if self.stride_px < 1 or self.sequence_stride_px < 1:
-            raise InvalidInputError("stride_px", "strides must be >= 1")
+        if self.max_points < 100 or self.sequence_points < 100:
+            raise InvalidInputError("max_points", "use at least 100 points per frame")
 
 
 # ---------------------------------------------------------------------------- rendering
@@ -433,7 +433,7 @@ class ChiselUpdater:
         rcfg = cfg.registration
         C = T @ self.hand_eye @ invert_rigid(T)
         prior = self._fixed or len(self._F_hist) >= 3
-        src = _points(self.camera, s0 * E, T, cfg.stride_px)  # placed with the tracked pose
+        src = _points(self.camera, s0 * E, T, cfg.max_points)  # placed with the tracked pose
         center = T[:3, 3]
         index = self.renderer.index
         scale_free = cfg.solve_scale == "always" or (
@@ -465,11 +465,9 @@ class ChiselUpdater:
         res.extra.update({"scale_refinement": sim.scale, "icp_iterations": sim.iterations})
         if not res.ok:
             return impute(np.full_like(E, np.nan), R), s, res
-        pts_world = transform_points(
-            res.T_model_from_est @ T, self.camera.backproject(s * E).reshape(-1, 3)
-        )
-        pts_world = pts_world[np.isfinite(pts_world).all(axis=1)]
-        m_prime = impute(reproject_depth(pts_world, self.camera, T), R)
+        # Registered estimate (camera at C @ T) re-projected into the tracked camera T.
+        T_tracked_from_registered = invert_rigid(T) @ res.T_model_from_est @ T
+        m_prime = impute(warp_depth(s * E, self.camera, T_tracked_from_registered), R)
         return m_prime, s, res
 
 
@@ -480,9 +478,11 @@ def _with_step(model: TsdfModel, step: int) -> TsdfModel:
 
 
 def _points(
-    camera: Camera, depth_mm: np.ndarray, T_world_from_cam: np.ndarray, stride: int
+    camera: Camera, depth_mm: np.ndarray, T_world_from_cam: np.ndarray, max_points: int
 ) -> np.ndarray:
-    """World points (N, 3) float64 of every ``stride``-th pixel of a depth map, mm."""
+    """World points (N, 3) float64 of a regular pixel stride giving ~``max_points``, mm."""
+    n_valid = int(np.isfinite(depth_mm).sum())
+    stride = max(1, int(np.ceil(np.sqrt(n_valid / max_points))))
     rays = camera.rays_cam()[::stride, ::stride]
     d = np.asarray(depth_mm, dtype=np.float64)[::stride, ::stride]
     ok = np.isfinite(d) & (d > 0)
@@ -582,7 +582,7 @@ def _hand_eye(
             s0, _ = solve_scale(R, E, cfg.change.threshold_mm)
         except EmptyResultError:
             continue
-        src = _points(camera, s0 * E, T, cfg.sequence_stride_px)
+        src = _points(camera, s0 * E, T, cfg.sequence_points)
         if len(src) < 10:
             continue
         sim = icp_similarity(src, T[:3, 3], renderer.index, C_seq, rcfg, estimate_scale=scale_free)
@@ -612,7 +612,7 @@ def _sequence_registration(
             s, _ = solve_scale(R, E, cfg.change.threshold_mm)
         except EmptyResultError:
             continue
-        pts.append(_points(camera, s * E, T, cfg.sequence_stride_px))
+        pts.append(_points(camera, s * E, T, cfg.sequence_points))
     if not pts:
         return np.eye(4), {"ok": False, "reason": "no frame overlaps the model render"}
     src = np.concatenate(pts)
