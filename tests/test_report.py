@@ -253,8 +253,10 @@ def _open_in_chromium(html_path: Path, screenshot: Path, profile: Path) -> tuple
     try:
         driver.set_page_load_timeout(120)
         driver.get(html_path.resolve().as_uri())
-        n_plots = 2 + 0  # error-vs-step, 3D view (+ sweeps, counted below)
-        n_plots += html_path.read_text().count('id="fig-sweep-')
+        # Every plotly figure of the report is a div with an id "fig-...".
+        n_plots = len(
+            re.findall(r'<div id="fig-[^"]+" class="plotly-graph-div"', html_path.read_text())
+        )
         WebDriverWait(driver, 120).until(
             lambda d: (
                 d.execute_script(
@@ -349,3 +351,14 @@ def test_cli_report(tmp_path: Path) -> None:
     )
     assert cli_main([*base, str(tmp_path / "bad.html"), "--sweep", "nonsense"]) == 1
     assert not (tmp_path / "bad.html").exists()
+
+
+def test_chromium_harness_catches_console_errors(tmp_path: Path) -> None:
+    # The check above must be able to fail: a script error in the page shows up as SEVERE.
+    if not Path(CHROMIUM).is_file():
+        pytest.skip(f"{CHROMIUM} is not installed (scripts/setup.sh installs it)")
+    page = write_report(tmp_path / "r.html", _metrics())
+    page.write_text(page.read_text().replace("</body>", "<script>undefinedFn();</script></body>"))
+    logs, facts = _open_in_chromium(page, tmp_path / "r.png", tmp_path / "profile")
+    assert facts["plots"] == 1
+    assert any(e["level"] == "SEVERE" and "undefinedFn" in e["message"] for e in logs)
