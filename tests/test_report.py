@@ -282,7 +282,7 @@ def _open_in_chromium(html_path: Path, screenshot: Path, profile: Path) -> tuple
             };
             """
         )
-        driver.set_window_size(1400, min(int(facts["height"]) + 100, 8000))
+        driver.set_window_size(1400, min(int(facts["height"]) + 400, 8000))
         driver.save_screenshot(str(screenshot))
         return driver.get_log("browser"), facts
     finally:
