@@ -105,6 +105,22 @@ def render_grid(camera: Camera, max_upscale: float = 3.0, margin_px: float = 2.0
         return RenderGrid(camera.width, camera.height, camera.fx, camera.cx, camera.cy)
     rays = camera.rays_cam()
     x, y = rays[..., 0], rays[..., 1]
+    # The distortion must be invertible over the image: a model that folds over (e.g. a
+    # strong k1 < 0 reaching past its turning radius) has pixels without a unique ray.
+    uv, _ = camera.project(rays)
+    u, v = camera.pixel_grid()
+    err = float(np.max(np.hypot(uv[..., 0] - u, uv[..., 1] - v)))
+    r_max = float(np.max(np.hypot(x, y)))
+    r = np.linspace(0.0, r_max, 256)
+    k1, k2, _, _, k3 = camera.dist
+    slope = 1.0 + 3 * k1 * r**2 + 5 * k2 * r**4 + 7 * k3 * r**6
+    if err > 1e-3 or slope.min() <= 0:
+        raise CameraError(
+            "camera.dist",
+            f"the distortion {camera.dist.tolist()} cannot be inverted over the "
+            f"{camera.width}x{camera.height} image (it folds over: radial slope "
+            f"{slope.min():.3f}, re-projection error {err:.3g} px); check the coefficients",
+        )
     # Keep the centre's resolution: the raw image is sharpest there.
     f = max(camera.fx, camera.fy)
     xmin, xmax = float(x.min()), float(x.max())

@@ -145,16 +145,7 @@ class MeshRenderer:
         self._T_cam_from_light = make_transform(
             np.eye(3), np.asarray(cfg.light.offset_mm, dtype=np.float64)
         )
-        if not self.jit:
-            # scalar_rgb has no vectorised ray queries: depth comes from a 1-spp sensor at
-            # exact pixel centres (stratified, no jitter) with the depth AOV integrator.
-            self._depth_sensor = mi.load_dict(
-                self._sensor_dict(
-                    {"type": "stratified", "sample_count": 1, "jitter": False}, "luminance"
-                )
-            )
-            self._depth_sensor_params = mi.traverse(self._depth_sensor)
-            self._depth_integrator = mi.load_dict({"type": "aov", "aovs": "dd:depth"})
+        self._depth_sensor = None
 
     def _sensor_dict(self, sampler: dict, pixel_format: str) -> dict:
         g = self.grid
@@ -202,7 +193,21 @@ class MeshRenderer:
         return z_depth_from_ray_length(t, self._rays_cam)
 
     def _depth_via_sensor(self, T_world_from_cam: np.ndarray) -> np.ndarray:
+        """Depth from the sensor's ``depth`` AOV (scalar_rgb has no vectorised ray queries).
+
+        A 1-spp stratified sampler without jitter puts the one sample at the pixel centre;
+        the near-plane ray length is converted to z-depth on the render grid, then remapped
+        onto the raw pixel grid with nearest neighbour.
+        """
         mi = self.mi
+        if self._depth_sensor is None:
+            self._depth_sensor = mi.load_dict(
+                self._sensor_dict(
+                    {"type": "stratified", "sample_count": 1, "jitter": False}, "luminance"
+                )
+            )
+            self._depth_sensor_params = mi.traverse(self._depth_sensor)
+            self._depth_integrator = mi.load_dict({"type": "aov", "aovs": "dd:depth"})
         self._depth_sensor_params["to_world"] = mi.ScalarTransform4f(
             mitsuba_to_world(T_world_from_cam)
         )
