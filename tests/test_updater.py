@@ -1,0 +1,250 @@
+"""The updater end to end on an analytic scene: preop model, a known bite, registration."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+from test_updater_scenes import (
+    BITE_HI,
+    BITE_LO,
+    bitten_mesh,
+    camera,
+    frames,
+    pose_error,
+    poses,
+    preop_poses,
+    tissue_mesh,
+)
+
+from chisel.depth_source import CallableDepth, GroundTruthDepth
+from chisel.errors import (
+    CameraError,
+    DepthUnitsError,
+    EmptyResultError,
+    InvalidInputError,
+    PoseError,
+)
+from chisel.geometry import invert_rigid, rotation_angle_deg
+from chisel.mesh import extract_mesh
+from chisel.model import TsdfModel
+from chisel.raycast import MeshRaycaster
+from chisel.sequence import Frame
+from chisel.updater import (
+    BuildConfig,
+    ChiselUpdater,
+    ModelRenderer,
+    UpdateConfig,
+    build_preop_model,
+    update_step,
+)
+
+VOXEL = 0.5
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    tissue = tissue_mesh()
+    bitten = bitten_mesh(tissue)
+    cam = camera()
+    model = build_preop_model(
+        tissue, cam, preop_poses(30, seed=1), BuildConfig(voxel_size_mm=VOXEL)
+    )
+    return {"tissue": tissue, "bitten": bitten, "cam": cam, "model": model}
+
+
+def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.all((points >= lo) & (points <= hi), axis=1)
+
+
+def _distance_to(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    _, d, _ = trimesh.proximity.closest_point(mesh, points)
+    return d
+
+
+def test_preop_model_matches_ct_surface(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    rc = MeshRaycaster.from_trimesh(scene["tissue"])
+    renderer = ModelRenderer(model)
+    for T in poses(4, seed=7):
+        gt = rc.render_depth(cam, T)
+        ours = renderer.render(cam, T)
+        both = np.isfinite(gt) & np.isfinite(ours)
+        assert both.mean() > 0.95
+        err = np.abs(ours[both] - gt[both])
+        assert np.median(err) < 0.1 and np.percentile(err, 95) < VOXEL / 2
+
+
+def test_known_removal_with_exact_depth(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    P = poses(12, seed=2)
+    new, report = update_step(model, cam, frames(scene["bitten"], cam, P), GroundTruthDepth())
+    assert report.frames_used == list(range(12)) and new.step == model.step + 1
+    assert max(f.changed_fraction for f in report.frames) > 0.02
+    before, after = extract_mesh(model), extract_mesh(new)
+    # Inside the changed region the surface now follows the bitten tissue (1 voxel).
+    lo, hi = BITE_LO - [0.5, 0.5, 1.0], BITE_HI + [0.5, 0.5, 0.0]
+    region = after.vertices[_in_box(after.vertices, lo, hi)]
+    assert len(region) > 200
+    assert _distance_to(scene["bitten"], region).max() < VOXEL
+    # The pocket floor at z = 29 exists in the update and did not before.
+    floor = region[np.abs(region[:, 2] - 29.0) < VOXEL]
+    assert len(floor) > 50
+    assert not np.any(_in_box(before.vertices, BITE_LO + [0.5, 0.5, 1.5], BITE_HI - 0.5))
+    # Unchanged surface away from the bite moves less than half a voxel.
+    far = ~_in_box(after.vertices, BITE_LO - 2.0, BITE_HI + 2.0)
+    assert _distance_to(before, after.vertices[far]).max() < VOXEL / 2
+    # The input model was not modified.
+    assert model.step == 0
+
+
+def test_registration_recovers_pose_error_and_scale(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    P = poses(12, seed=2)
+    E = pose_error(2.0, 2.0, seed=3)
+    tracked = np.stack([T @ E for T in P])
+    k = 0.037  # an arbitrary monocular scale, far from mm
+    src = CallableDepth(lambda f: f.depth_mm * k)
+    new, report = update_step(model, cam, frames(scene["bitten"], cam, P, tracked), src)
+    assert report.frames_used == list(range(12))
+    assert report.sequence_registration["ok"]
+    for f in report.frames:
+        C = np.asarray(f.registration["T_model_from_est"])
+        D = invert_rigid(P[f.index]) @ C @ tracked[f.index]
+        assert np.linalg.norm(D[:3, 3]) < 0.2, f.index
+        assert rotation_angle_deg(D[:3, :3]) < 0.2, f.index
+        assert abs(f.scale * k - 1.0) < 0.01, f.index
+    # The carved model follows the bite as with exact poses.
+    after = extract_mesh(new)
+    region = after.vertices[_in_box(after.vertices, BITE_LO - [0.5, 0.5, 1.0], BITE_HI)]
+    assert np.percentile(_distance_to(scene["bitten"], region), 95) < VOXEL
+
+
+def test_registration_ablation_and_threshold(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    P = poses(6, seed=5)
+    E = pose_error(2.0, 2.0, seed=3)
+    fr = frames(scene["bitten"], cam, P, np.stack([T @ E for T in P]))
+    off = UpdateConfig(register=False)
+    _, rep = update_step(model, cam, fr, GroundTruthDepth(), off)
+    assert all(f.registration is None for f in rep.frames)
+    # Without registration the pose error shows up as spurious change.
+    _, rep_on = update_step(model, cam, fr, GroundTruthDepth())
+    frac_off = np.mean([f.changed_fraction for f in rep.frames])
+    frac_on = np.mean([f.changed_fraction for f in rep_on.frames])
+    assert frac_off > frac_on
+    # A threshold above the 4 mm pocket depth sees no change: model bit-identical.
+    high = replace(UpdateConfig(), change=replace(UpdateConfig().change, threshold_mm=6.0))
+    same, rep_hi = update_step(model, cam, fr, GroundTruthDepth(), high)
+    assert all(f.changed_fraction == 0 for f in rep_hi.frames)
+    assert same.tsdf.tobytes() == model.tsdf.tobytes()
+    assert same.weight.tobytes() == model.weight.tobytes()
+
+
+def test_streaming_updater_tracks_hand_eye(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    P = poses(8, seed=11)
+    E = pose_error(2.0, 2.0, seed=4)
+    fr = frames(scene["bitten"], cam, P, np.stack([T @ E for T in P]))
+    upd = ChiselUpdater(model, cam, GroundTruthDepth())
+    upd.begin_step()
+    reps = [upd.process(Frame(f.index, f.T_world_from_cam, depth_mm=f.depth_mm)) for f in fr]
+    assert all(r.used for r in reps)
+    step = upd.end_step()
+    assert step.step == 1 and upd.model.step == 1 and model.step == 0
+    F = upd.hand_eye @ E  # the true correction is E^-1
+    assert np.linalg.norm(F[:3, 3]) < 0.2 and rotation_angle_deg(F[:3, :3]) < 0.2
+    with pytest.raises(RuntimeError, match="begin_step"):
+        upd.process(fr[0])
+
+
+def test_resume_after_step(scene: dict, tmp_path) -> None:
+    cam, model = scene["cam"], scene["model"]
+    bite2 = trimesh.creation.box(extents=[4, 4, 5])
+    bite2.apply_translation([4.0, -4.0, 26.0])
+    step2 = scene["bitten"].difference(bite2, engine="manifold")
+    P1, P2 = poses(6, seed=21), poses(6, seed=22)
+    m1, _ = update_step(model, cam, frames(scene["bitten"], cam, P1), GroundTruthDepth())
+    m1.save(tmp_path / "step_01.npz")
+    resumed = TsdfModel.load(tmp_path / "step_01.npz")
+    assert resumed.step == 1
+    a, _ = update_step(m1, cam, frames(step2, cam, P2), GroundTruthDepth())
+    b, _ = update_step(resumed, cam, frames(step2, cam, P2), GroundTruthDepth())
+    assert a.step == b.step == 2
+    assert a.tsdf.tobytes() == b.tsdf.tobytes() and a.weight.tobytes() == b.weight.tobytes()
+
+
+def test_skipped_frames_are_reported_never_fused(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    fr = frames(scene["bitten"], cam, poses(4, seed=2))
+    rng = np.random.default_rng(0)
+    garbage = rng.uniform(5.0, 40.0, cam.shape).astype(np.float32)
+
+    def source(f: Frame) -> np.ndarray:
+        return garbage if f.index == 2 else f.depth_mm
+
+    new, rep = update_step(model, cam, fr, CallableDepth(source, metric=True))
+    assert rep.frames_used == [0, 1, 3]
+    assert rep.frames_skipped[0]["index"] == 2
+    assert "registration failed" in rep.frames_skipped[0]["reason"]
+    # All frames garbage: the step fails and says why.
+    with pytest.raises(EmptyResultError, match="no frame"):
+        update_step(model, cam, fr, CallableDepth(lambda f: garbage, metric=True))
+
+
+def test_bad_input_raises_before_anything_is_fused(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    snapshot = model.tsdf.tobytes()
+    fr = frames(scene["bitten"], cam, poses(3, seed=2))
+    gt = GroundTruthDepth()
+
+    def with_pose(T: np.ndarray) -> list[Frame]:
+        return [fr[0], replace(fr[1], T_world_from_cam=T), fr[2]]
+
+    skew = fr[1].T_world_from_cam.copy()
+    skew[:3, :3] *= 1.1
+    with pytest.raises(PoseError, match="frame 1 pose.*not rigid"):
+        update_step(model, cam, with_pose(skew), gt)
+    nan = fr[1].T_world_from_cam.copy()
+    nan[1, 3] = np.nan
+    with pytest.raises(PoseError, match="non-finite"):
+        update_step(model, cam, with_pose(nan), gt)
+    far = fr[1].T_world_from_cam.copy()
+    far[:3, 3] = [500.0, 0.0, 0.0]
+    with pytest.raises(PoseError, match="outside the model's volume"):
+        update_step(model, cam, with_pose(far), gt)
+    metres = [replace(f, depth_mm=f.depth_mm / 1000.0) for f in fr]
+    with pytest.raises(DepthUnitsError, match="metres"):
+        update_step(model, cam, metres, gt)
+    empty = [fr[0], replace(fr[1], depth_mm=np.full(cam.shape, np.nan, np.float32)), fr[2]]
+    with pytest.raises(InvalidInputError, match="depth of frame 1.*no valid pixel"):
+        update_step(model, cam, empty, gt)
+    with pytest.raises(InvalidInputError, match="no valid pixel"):
+        update_step(model, cam, fr, CallableDepth(lambda f: np.zeros(cam.shape, np.float32)))
+    small = [replace(fr[0], depth_mm=fr[0].depth_mm[:10])]
+    with pytest.raises(CameraError, match="camera is"):
+        update_step(model, cam, small, gt)
+    no_depth = [replace(fr[0], depth_mm=None)]
+    with pytest.raises(InvalidInputError, match="needs depth"):
+        update_step(model, cam, no_depth, gt)
+    with pytest.raises(InvalidInputError, match="at least one frame"):
+        update_step(model, cam, [], gt)
+    assert model.tsdf.tobytes() == snapshot and model.step == 0
+
+
+def test_build_input_checks(scene: dict) -> None:
+    cam = scene["cam"]
+    P = preop_poses(3, seed=1)
+    with pytest.raises(PoseError, match="counts differ"):
+        build_preop_model(scene["tissue"], cam, P, rgbs=[None, None])
+    bad = P.copy()
+    bad[0, :3, :3] *= 2.0
+    with pytest.raises(PoseError, match="not rigid"):
+        build_preop_model(scene["tissue"], cam, bad)
+    away = P.copy()
+    away[:, :3, 3] = [0.0, 0.0, -200.0]
+    away[:, :3, :3] = np.diag([1.0, -1.0, -1.0])  # looking away from the anatomy
+    with pytest.raises(EmptyResultError, match="not visible"):
+        build_preop_model(scene["tissue"], cam, away)
+    with pytest.raises(InvalidInputError, match="trunc_mm"):
+        BuildConfig(voxel_size_mm=1.0, trunc_mm=0.5)
