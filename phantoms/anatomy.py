@@ -1,0 +1,548 @@
+"""Procedural nasal-sinus anatomy: the tissue solid of one nasal side as a manifold.
+
+Construction (all lengths in mm, world frame of ``docs/phantoms.md``: +x lateral, +y
+posterior, +z superior; the septum's midline face lies near x = 0, the nostril at y = 0,
+the nasal floor at z = 0):
+
+1. The **airway** is an implicit field (positive in air): the space between septum and
+   lateral wall, floor and roof, with the three turbinates carved out by smooth
+   subtraction and a smooth low-frequency undulation of the walls. It is sampled on a
+   grid and meshed with marching cubes (scikit-image), then made a manifold.
+2. Every **air cell** (infundibulum behind the uncinate process, ethmoid bulla, posterior
+   ethmoid cell behind the basal lamella, further ethmoid cells, maxillary sinus with its
+   ostium) is a void ``V`` with a wall ``W``: ``V`` dilated by the wall thickness. The
+   walls are subtracted from the airway, so a wall that meets the airway bulges into it
+   as a lamella of exactly that thickness (spheres are used where the thickness must be
+   exact), and no void ever touches the airway.
+3. ``tissue = block - (airway - walls) - voids``: a closed, oriented 2-manifold whose
+   outer shell includes the airway (open at the nostril, y = 0) and one inner shell per
+   closed air cell.
+
+The bulla, basal lamella and uncinate are the bite targets (:data:`TARGET_CELLS`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import manifold3d as m3d
+import numpy as np
+from skimage.measure import marching_cubes
+
+from phantoms.errors import AnatomyError, NotManifoldError
+
+#: target lamella -> the air cell whose airway-facing wall it is.
+TARGET_CELLS: dict[str, str] = {
+    "uncinate": "infundibulum",
+    "bulla": "ethmoid_bulla",
+    "basal_lamella": "posterior_ethmoid",
+}
+
+_SEPTUM_FACE_X = -3.5  # medial face of the tissue block (midline of the septum), mm
+
+
+@dataclass(frozen=True)
+class SphereCell:
+    """A spherical air cell: void of ``radius_mm`` inside a wall ``wall_mm`` thick."""
+
+    name: str
+    center_mm: tuple[float, float, float]
+    radius_mm: float
+    wall_mm: float
+
+    @property
+    def outer_radius_mm(self) -> float:
+        return self.radius_mm + self.wall_mm
+
+
+@dataclass(frozen=True)
+class Anatomy:
+    """The preoperative tissue solid and the geometry the rest of the generator needs."""
+
+    tissue: m3d.Manifold
+    """Closed tissue solid (block minus airway minus air cells), mm."""
+    cells: tuple[SphereCell, ...]
+    """Spherical air cells, targets first (infundibulum, bulla, posterior ethmoid)."""
+    maxillary_center_mm: tuple[float, float, float]
+    maxillary_semi_axes_mm: tuple[float, float, float]
+    maxillary_volume_mm3: float
+    """Volume of the maxillary sinus void alone (without ostium and infundibulum), mm^3."""
+    block_min_mm: tuple[float, float, float]
+    block_max_mm: tuple[float, float, float]
+    nostril_mm: tuple[float, float, float]
+    """Centre of the nostril opening on the block's anterior face (y = 0)."""
+    airway_min_mm: tuple[float, float, float]
+    airway_max_mm: tuple[float, float, float]
+    """Bounding box of the airway inside the block, mm."""
+    n_voids: int
+    """Number of closed air voids (inner surface shells) of ``tissue``."""
+
+    def cell(self, name: str) -> SphereCell:
+        for c in self.cells:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+
+# --------------------------------------------------------------------------- fields
+
+
+def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
+    t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _smin(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
+    """Smooth minimum (polynomial, blend radius ``k`` mm): smooth intersection of fields."""
+    h = np.maximum(k - np.abs(a - b), 0.0) / k
+    return np.minimum(a, b) - h * h * k * 0.25
+
+
+def _ellipsoid(px, py, pz, center, axes) -> np.ndarray:
+    """Approximate signed distance, positive inside an ellipsoid (Quilez' bound), mm."""
+    x = (px - center[0]) / axes[0]
+    y = (py - center[1]) / axes[1]
+    z = (pz - center[2]) / axes[2]
+    k0 = np.sqrt(x * x + y * y + z * z)
+    k1 = np.sqrt((x / axes[0]) ** 2 + (y / axes[1]) ** 2 + (z / axes[2]) ** 2)
+    return -k0 * (k0 - 1.0) / np.maximum(k1, 1e-9)
+
+
+class AirwayField:
+    """The airway as an implicit field ``f(x, y, z)`` in mm, positive in air.
+
+    The zero level set is the airway wall; ``|grad f|`` is close to 1 near it, so ``f``
+    approximates the signed distance to the wall.
+    """
+
+    def __init__(self, p: dict[str, float], seed: int) -> None:
+        self.p = p
+        L, H = p["airway_length_mm"], p["airway_height_mm"]
+        self.L, self.H = L, H
+        self.dev_max = max(p["septum_deviation_mm"], 0.0)
+        # inferior turbinate: medial face at the common meatus, lateral face at the meatus
+        it_med = self.dev_max + p["it_septum_gap_mm"]
+        it_lat = p["floor_width_mm"] - p["inferior_meatus_mm"]
+        it_ax = max((it_lat - it_med) / 2.0, 1.5)
+        self.it_center = (
+            it_med + it_ax,
+            p["it_start_mm"] + p["it_length_mm"] / 2,
+            p["it_center_z_mm"],
+        )
+        self.it_axes = (it_ax, p["it_length_mm"] / 2, p["it_height_mm"] / 2)
+        # attachment of the inferior turbinate to the lateral wall, above its meatus
+        att_x0 = self.it_center[0]
+        att_x1 = p["floor_width_mm"] + 1.5
+        self.it_att_center = (
+            (att_x0 + att_x1) / 2,
+            self.it_center[1],
+            p["it_center_z_mm"] + 0.3 * p["it_height_mm"],
+        )
+        self.it_att_axes = (
+            (att_x1 - att_x0) / 2 + 0.5,
+            0.42 * p["it_length_mm"],
+            0.28 * p["it_height_mm"],
+        )
+        self.it_top = p["it_center_z_mm"] + p["it_height_mm"] / 2
+        # middle turbinate: a hanging plate with a root up to the roof
+        mt_x = self.dev_max + p["mt_septum_gap_mm"] + p["mt_thickness_mm"] / 2
+        mt_y0 = p["mt_start_frac"] * L
+        mt_z0 = p["mt_bottom_frac"] * H
+        self.mt_start = mt_y0
+        self.mt_center = (mt_x, mt_y0 + p["mt_length_mm"] / 2, mt_z0 + p["mt_height_mm"] / 2)
+        self.mt_axes = (p["mt_thickness_mm"] / 2, p["mt_length_mm"] / 2, p["mt_height_mm"] / 2)
+        root_z = (self.mt_center[2] + H + 4.0) / 2
+        self.mt_root_center = (mt_x, self.mt_center[1] + 2.0, root_z)
+        self.mt_root_axes = (0.4 * p["mt_thickness_mm"], 0.42 * p["mt_length_mm"], H + 4.0 - root_z)
+        # lateral wall: floor width below the inferior turbinate's top, the middle meatus
+        # above it, tapering to the olfactory cleft under the roof
+        self.x_mid = mt_x + p["mt_thickness_mm"] / 2 + p["middle_meatus_mm"]
+        self.x_low = p["floor_width_mm"]
+        # superior turbinate: small, high and posterior on the lateral wall
+        st_z = 0.8 * H
+        st_y0 = 0.6 * L
+        self.st_center = (
+            self.lateral_x(np.array(st_y0 + 10.0), np.array(st_z)).item() - 0.6,
+            st_y0 + p["st_length_mm"] / 2,
+            st_z,
+        )
+        self.st_axes = (2.0, p["st_length_mm"] / 2, 2.4)
+        # smooth undulation of the walls: three plane waves, 12-25 mm wavelength
+        rng = np.random.default_rng([int(seed), 0xA1])
+        dirs = rng.normal(size=(3, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        wavelengths = rng.uniform(12.0, 25.0, size=3)
+        self.wave_k = dirs * (2.0 * math.pi / wavelengths)[:, None]
+        self.wave_phase = rng.uniform(0.0, 2.0 * math.pi, size=3)
+
+    # -- profiles ----------------------------------------------------------------
+    def septum_x(self, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        p = self.p
+        yd = p["septum_deviation_y_frac"] * self.L
+        zd = p["septum_deviation_z_frac"] * self.H
+        return p["septum_deviation_mm"] * np.exp(
+            -(((y - yd) / (0.2 * self.L)) ** 2) - ((z - zd) / (0.18 * self.H)) ** 2
+        )
+
+    def roof_z(self, y: np.ndarray) -> np.ndarray:
+        L, H = self.L, self.H
+        vh = self.p["vestibule_height_mm"]
+        rise = _smoothstep(0.0, 0.3 * L, y)
+        fall = _smoothstep(0.7 * L, L, y)
+        return vh + (H - vh) * rise - 0.3 * H * fall
+
+    def lateral_x(self, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        base = self.x_low + (self.x_mid - self.x_low) * _smoothstep(
+            self.it_top - 1.0, self.it_top + 3.0, z
+        )
+        zr = self.roof_z(y)
+        z2 = 0.72 * zr
+        u = np.clip((z - z2) / np.maximum(zr - z2, 1e-6), 0.0, 1.0)
+        x = base + (self.p["roof_width_mm"] - base) * u**1.3
+        return x * (0.85 + 0.15 * _smoothstep(0.0, 15.0, y))
+
+    # -- the field ---------------------------------------------------------------
+    def __call__(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        k = 1.5
+        f = x - self.septum_x(y, z)
+        f = _smin(f, self.lateral_x(y, z) - x, k)
+        floor = 2.0 * (1.0 - _smoothstep(0.0, 10.0, y))  # nostril sill
+        f = _smin(f, z - floor, 2.0)
+        f = _smin(f, self.roof_z(y) - z, k)
+        f = _smin(f, self.L - y, 3.0)
+        wave = np.zeros_like(f)
+        for kv, ph in zip(self.wave_k, self.wave_phase, strict=True):
+            wave += np.sin(kv[0] * x + kv[1] * y + kv[2] * z + ph)
+        f = f + self.p["wobble_mm"] * wave / 3.0
+        # turbinates are tissue: smooth subtraction
+        for center, axes in (
+            (self.it_center, self.it_axes),
+            (self.it_att_center, self.it_att_axes),
+            (self.mt_center, self.mt_axes),
+            (self.mt_root_center, self.mt_root_axes),
+            (self.st_center, self.st_axes),
+        ):
+            f = _smin(f, -_ellipsoid(x, y, z, center, axes), k)
+        return f
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned box that contains the airway's part inside the block, mm."""
+        lo = np.array([-1.5 - 1.0, -3.0, -1.0])
+        hi = np.array([max(self.x_low, self.x_mid) + 2.0, self.L + 1.0, self.H + 1.0])
+        lo[0] = min(lo[0], -abs(self.p["septum_deviation_mm"]) - 2.0)
+        return lo, hi
+
+
+# ------------------------------------------------------------------------- meshing
+
+
+def manifold_from_arrays(
+    vertices: np.ndarray, faces: np.ndarray, source: str = "mesh"
+) -> m3d.Manifold:
+    """Closed manifold from a triangle mesh, or :class:`NotManifoldError`.
+
+    vertices : (V, 3) float, mm.  faces : (F, 3) int, counter-clockwise seen from outside.
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.uint64)
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise NotManifoldError(
+            source, f"expected (V, 3) vertices and (F>0, 3) faces, got {v.shape} and {f.shape}"
+        )
+    man = m3d.Manifold(m3d.Mesh64(vert_properties=v, tri_verts=f))
+    if man.status() != m3d.Error.NoError or man.is_empty():
+        raise NotManifoldError(
+            source,
+            f"not a closed oriented 2-manifold (manifold3d status {man.status().name}); "
+            "repair it first (phantoms.repair.repair_surface or `python -m phantoms repair`)",
+        )
+    return man
+
+
+def arrays_from_manifold(man: m3d.Manifold) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) float64 vertices in mm and (F, 3) int64 faces of a manifold."""
+    mesh = man.to_mesh64()
+    v = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3].copy()
+    f = np.asarray(mesh.tri_verts, dtype=np.int64).copy()
+    return v, f
+
+
+def mesh_field(field, lo: np.ndarray, hi: np.ndarray, step_mm: float) -> m3d.Manifold:
+    """Marching-cubes mesh of ``{field > 0}`` inside the box ``[lo, hi]`` as a manifold."""
+    n = np.ceil((hi - lo) / step_mm).astype(int) + 1
+    axes = [lo[i] + step_mm * np.arange(n[i]) for i in range(3)]
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    vol = field(X, Y, Z).astype(np.float32)
+    vol = np.pad(vol, 1, constant_values=-1.0)  # closes the surface at the box faces
+    verts, faces, _, _ = marching_cubes(
+        vol, level=0.0, spacing=(step_mm,) * 3, allow_degenerate=False
+    )
+    verts = verts.astype(np.float64) + (lo - step_mm)
+    man = manifold_from_arrays(verts, faces[:, ::-1], "airway marching cubes")
+    if man.volume() < 0:  # pragma: no cover - orientation is fixed by the reversal above
+        man = manifold_from_arrays(verts, faces, "airway marching cubes")
+    return man
+
+
+def _segments(radius: float, edge_mm: float) -> int:
+    return int(max(16, 4 * math.ceil(2.0 * math.pi * radius / edge_mm / 4.0)))
+
+
+def sphere(center, radius: float, edge_mm: float) -> m3d.Manifold:
+    return m3d.Manifold.sphere(radius, _segments(radius, edge_mm)).translate(
+        tuple(float(c) for c in center)
+    )
+
+
+# ----------------------------------------------------------------------- the build
+
+
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1.0 - 2.0 * i / n)
+    theta = math.pi * (1.0 + 5.0**0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
+_UNIT = _fibonacci_sphere(600)
+
+
+def _inside_ellipsoid(points: np.ndarray, center, axes) -> np.ndarray:
+    q = (points - np.asarray(center)) / np.asarray(axes)
+    return np.einsum("ij,ij->i", q, q) <= 1.0
+
+
+def _sphere_hits_ellipsoid(c, r: float, e_center, e_axes) -> bool:
+    """True if the ball (c, r) reaches into the ellipsoid (surface samples, mm)."""
+    pts = np.asarray(c) + r * _UNIT
+    return bool(_inside_ellipsoid(np.vstack([pts, np.asarray(c)[None]]), e_center, e_axes).any())
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    t = float(np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0))
+    return float(np.linalg.norm(p - (a + t * ab)))
+
+
+def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anatomy:
+    """Build the preoperative tissue solid from sampled shape parameters.
+
+    Parameters
+    ----------
+    p : dict
+        Shape parameters (:func:`phantoms.params.sample_params`).
+    seed : int
+        Seed of the wall undulation and of the further ethmoid cells' placement.
+    edge_mm : float
+        Target edge length of the surface, mm; the airway grid uses ``min(edge_mm, 0.5)``
+        so the 1.5-3 mm olfactory cleft never pinches off.
+
+    Raises
+    ------
+    AnatomyError
+        If the air cells cannot be placed without touching each other.
+    """
+    air = AirwayField(p, seed)
+    L, H = air.L, air.H
+    rng = np.random.default_rng([int(seed), 0xCE11])
+
+    def wall_x(y: float, z: float) -> float:
+        return float(air.lateral_x(np.array(y), np.array(z)))
+
+    # --- target cells -------------------------------------------------------------
+    t_u, R_u = p["uncinate_thickness_mm"], p["uncinate_radius_mm"]
+    y_u = air.mt_start + p["uncinate_y_offset_mm"]
+    z_u = p["uncinate_z_frac"] * H
+    c_u = np.array([wall_x(y_u, z_u) - p["uncinate_bulge_mm"] + R_u + t_u, y_u, z_u])
+    infundibulum = SphereCell("infundibulum", tuple(c_u), R_u, t_u)
+
+    r_b, t_b = p["bulla_radius_mm"], p["bulla_wall_mm"]
+    z_b = p["bulla_z_frac"] * H
+    x_b = wall_x(y_u + 8.0, z_b) - p["bulla_bulge_mm"] + r_b + t_b
+    sep = max(t_u, t_b) + 0.6
+    need = R_u + r_b + sep
+    dxz2 = (x_b - c_u[0]) ** 2 + (z_b - c_u[2]) ** 2
+    y_b = y_u + math.sqrt(max(need**2 - dxz2, 0.0)) + 0.2
+    c_b = np.array([wall_x(y_b, z_b) - p["bulla_bulge_mm"] + r_b + t_b, y_b, z_b])
+    bulla = SphereCell("ethmoid_bulla", tuple(c_b), r_b, t_b)
+
+    R_p, t_p = p["posterior_ethmoid_radius_mm"], p["basal_lamella_mm"]
+    z_p = z_b
+    x_p = wall_x(y_b + 8.0, z_p) - p["basal_bulge_mm"] + R_p + t_p
+    sep = max(t_b, t_p) + 0.6
+    need = r_b + R_p + sep
+    y_p = y_b + math.sqrt(max(need**2 - (x_p - c_b[0]) ** 2, 0.0)) + 0.2
+    c_p = np.array([wall_x(y_p, z_p) - p["basal_bulge_mm"] + R_p + t_p, y_p, z_p])
+    post = SphereCell("posterior_ethmoid", tuple(c_p), R_p, t_p)
+    cells: list[SphereCell] = [infundibulum, bulla, post]
+
+    # --- maxillary sinus: below the ethmoid cells, lateral to the airway -------------
+    wob = p["wobble_mm"]
+    z_top = z_u + 0.15 * R_u
+    z_bot = -4.0
+    az = (z_top - z_bot) / 2.0
+    axy = p["maxillary_volume_mm3"] / (4.0 / 3.0 * math.pi * az)
+    ax = math.sqrt(axy / 1.45)
+    ay = 1.45 * ax
+    x_wall = max(air.x_low, air.x_mid)
+    m_center = np.array([x_wall + wob + p["maxillary_wall_mm"] + ax, y_u + 0.35 * ay, z_bot + az])
+    m_axes = np.array([ax, ay, az])
+    r_o = p["ostium_radius_mm"]
+    # push the sinus down/laterally until it clears the ethmoid cells by their wall + 0.6 mm
+    for _ in range(60):
+        clash = any(
+            _sphere_hits_ellipsoid(
+                c.center_mm, c.radius_mm + c.wall_mm + 0.6 + 0.5, m_center, m_axes
+            )
+            for c in (bulla, post)
+        )
+        if not clash:
+            break
+        m_center = m_center + np.array([0.3, 0.0, -0.3])
+    else:
+        raise AnatomyError(
+            "anatomy", "maxillary sinus cannot clear the ethmoid bulla; choose other parameters"
+        )
+    # the ostium (a cylinder from the infundibulum's centre to the sinus's centre) must
+    # clear the other cells
+    for c in (bulla, post):
+        gap = (
+            _segment_distance(np.asarray(c.center_mm), c_u, m_center)
+            - c.radius_mm
+            - r_o
+            - max(c.wall_mm, t_u)
+        )
+        if gap < 0.5:
+            raise AnatomyError(
+                "anatomy",
+                f"maxillary ostium passes {gap:.2f} mm from the {c.name} (expected >= 0.5 mm); choose other parameters",
+            )
+
+    # --- further ethmoid cells, rejection-sampled above the maxillary sinus --------
+    wall_e = p["ethmoid_cell_wall_mm"]
+    n_eth = int(p["ethmoid_cells"])
+    placed = 0
+    for _ in range(400):
+        if placed == n_eth:
+            break
+        r = float(rng.uniform(2.5, 4.5))
+        y = float(rng.uniform(y_u - 2.0, c_p[1] + R_p))
+        z = float(rng.uniform(0.62 * H, 0.9 * H))
+        x = wall_x(y, z) + float(rng.uniform(1.0, 9.0)) + r
+        c = np.array([x, y, z])
+        ok = z + r + wall_e < H + 2.0
+        for other in cells:
+            d = float(np.linalg.norm(c - np.asarray(other.center_mm)))
+            ok = ok and d >= r + other.radius_mm + max(wall_e, other.wall_mm) + 0.6
+        ok = ok and not _sphere_hits_ellipsoid(c, r + wall_e + 0.6 + 0.5, m_center, m_axes)
+        ok = ok and _segment_distance(c, c_u, m_center) >= r + r_o + max(wall_e, t_u) + 0.6
+        if ok:
+            placed += 1
+            cells.append(SphereCell(f"ethmoid_cell_{placed}", tuple(c), r, wall_e))
+    if placed < n_eth:
+        raise AnatomyError(
+            "ethmoid_cells", f"could place only {placed} of {n_eth} ethmoid cells; choose fewer"
+        )
+
+    # --- manifolds ---------------------------------------------------------------
+    lo, hi = air.bounds()
+    # an odd grid offset keeps marching-cubes vertices off the CT grid's lattice
+    airway = mesh_field(air, lo + 0.0731, hi, min(edge_mm, 0.5))
+
+    maxillary = m3d.Manifold.sphere(1.0, _segments(max(m_axes), max(edge_mm, 0.8))).scale(
+        tuple(m_axes)
+    )
+    m_wall = m3d.Manifold.sphere(1.0, _segments(max(m_axes), max(edge_mm, 0.8))).scale(
+        tuple(m_axes + p["maxillary_wall_mm"] + 0.5)
+    )
+    maxillary = maxillary.translate(tuple(m_center))
+    m_wall = m_wall.translate(tuple(m_center))
+    maxillary_volume = maxillary.volume()
+
+    axis = m_center - c_u
+    length = float(np.linalg.norm(axis))
+    ostium = _cylinder(c_u, axis / length, length, r_o, edge_mm)
+    ostium_wall = _cylinder(c_u, axis / length, length, r_o + t_u, edge_mm)
+
+    walls = [sphere(c.center_mm, c.outer_radius_mm, edge_mm) for c in cells] + [m_wall, ostium_wall]
+    voids = [sphere(c.center_mm, c.radius_mm, edge_mm) for c in cells] + [maxillary, ostium]
+    airway = airway - m3d.Manifold.batch_boolean(walls, m3d.OpType.Add)
+    box = airway.bounding_box()
+    air_lo, air_hi = np.asarray(box[:3]), np.asarray(box[3:])
+
+    extents_lo = [np.asarray(c.center_mm) - c.outer_radius_mm for c in cells] + [
+        m_center - m_axes - 2.0
+    ]
+    extents_hi = [np.asarray(c.center_mm) + c.outer_radius_mm for c in cells] + [
+        m_center + m_axes + 2.0
+    ]
+    b_lo = np.minimum(np.min(extents_lo, axis=0) - 3.0, [_SEPTUM_FACE_X, 0.0, -4.0])
+    b_hi = np.maximum(np.max(extents_hi, axis=0) + 3.0, [0.0, L + 4.0, H + 4.0])
+    b_lo[0], b_lo[1] = _SEPTUM_FACE_X, 0.0
+    b_lo, b_hi = np.round(b_lo, 1), np.round(b_hi, 1)
+    block = m3d.Manifold.cube(tuple(b_hi - b_lo)).translate(tuple(b_lo))
+    tissue = block - airway - m3d.Manifold.batch_boolean(voids, m3d.OpType.Add)
+    if tissue.status() != m3d.Error.NoError or tissue.is_empty():  # pragma: no cover
+        raise AnatomyError("anatomy", f"tissue boolean failed: {tissue.status().name}")
+
+    # closed voids = shells beyond the outer one; the infundibulum, ostium and maxillary
+    # sinus form one void
+    expected_voids = len(cells)  # (cells - infundibulum) + the infundibulum-maxillary void
+    n_shells = _count_shells(tissue)
+    if n_shells - 1 != expected_voids:
+        raise AnatomyError(
+            "anatomy",
+            f"expected {expected_voids} closed air voids, got {n_shells - 1}; air cells touch each other or the airway",
+        )
+    z_nostril = 0.5 * (2.0 + p["vestibule_height_mm"])
+    x_nostril = 0.5 * float(
+        air.septum_x(np.array(0.0), np.array(z_nostril))
+        + air.lateral_x(np.array(0.0), np.array(z_nostril))
+    )
+    return Anatomy(
+        tissue=tissue,
+        cells=tuple(cells),
+        maxillary_center_mm=tuple(float(v) for v in m_center),
+        maxillary_semi_axes_mm=tuple(float(v) for v in m_axes),
+        maxillary_volume_mm3=float(maxillary_volume),
+        block_min_mm=tuple(float(v) for v in b_lo),
+        block_max_mm=tuple(float(v) for v in b_hi),
+        nostril_mm=(x_nostril, 0.0, z_nostril),
+        airway_min_mm=tuple(float(v) for v in np.maximum(air_lo, b_lo)),
+        airway_max_mm=tuple(float(v) for v in np.minimum(air_hi, b_hi)),
+        n_voids=expected_voids,
+    )
+
+
+def _cylinder(
+    origin: np.ndarray, direction: np.ndarray, length: float, radius: float, edge_mm: float
+) -> m3d.Manifold:
+    """Cylinder of ``radius`` from ``origin`` along unit ``direction`` for ``length`` mm."""
+    cyl = m3d.Manifold.cylinder(length, radius, radius, _segments(radius, edge_mm))
+    return cyl.transform(_frame_z(origin, direction))
+
+
+def _frame_z(origin: np.ndarray, z_axis: np.ndarray) -> list[list[float]]:
+    """3x4 affine whose local +z is ``z_axis`` and whose origin is ``origin``."""
+    z = np.asarray(z_axis, float) / np.linalg.norm(z_axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z], axis=1)
+    return np.concatenate([R, np.asarray(origin, float)[:, None]], axis=1).tolist()
+
+
+def _count_shells(man: m3d.Manifold) -> int:
+    """Number of connected surface shells (outer boundary + one per closed void)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    _, f = arrays_from_manifold(man)
+    n = int(f.max()) + 1
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    count, _ = connected_components(graph, directed=False)
+    return int(count)

@@ -1,0 +1,253 @@
+"""``python -m phantoms``: generate nasal-sinus phantoms, repair user surfaces.
+
+Subcommands: ``generate`` (a phantom folder), ``repair`` (close a non-manifold surface),
+``params`` (list the shape parameters and their ranges). Errors of the input print one
+line naming the argument and exit with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from phantoms.errors import ParameterRangeError, PhantomError
+
+_DESCRIPTION = """\
+Procedural nasal-sinus phantoms for Endoscopic Chisel.
+
+Units: millimetres, mm^3 and Hounsfield units throughout. World frame: +x lateral
+(towards the maxillary sinus), +y posterior (nostril -> choana), +z superior.
+"""
+
+_GENERATE_EPILOG = """\
+Outputs in OUT (written to a temporary folder beside it, then renamed; an existing OUT
+is replaced only when everything succeeded):
+  phantom.json                  manifest: seed, shape parameters, steps, ROI box,
+                                target lamella, airway path, CT description
+  meshes/step_NN.ply            tissue solid after NN bites (closed manifold, mm)
+  meshes/cutter_NN.ply          the cutter of bite NN (mm)
+  ct/step_NN_label.nii.gz       label map, uint8: 0 air, 1 soft tissue, 2 bone
+  ct/step_NN_hu.nii.gz          Hounsfield-like volume, int16: air -1000, soft tissue
+                                40, bone 700, partial volume at surfaces (the
+                                -480 HU iso-surface is the tissue surface)
+  tet/step_NN.vtu               tetrahedral mesh (only with --tet; slow, ~20-60 s/step)
+The NIfTI affine maps voxel indices to voxel centres in the world frame (mm).
+See docs/phantoms.md for the manifest contract.
+"""
+
+
+def _param(text: str) -> tuple[str, float]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    name, value = text.split("=", 1)
+    try:
+        return name.strip(), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a number after {name}=, got {value!r}"
+        ) from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m phantoms",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    gen = sub.add_parser(
+        "generate",
+        help="generate a phantom: meshes, CT volumes and a manifest per surgical step",
+        description="Generate a seeded nasal-sinus phantom and a plan of sequential bites.",
+        epilog=_GENERATE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    gen.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    gen.add_argument(
+        "--bites", type=int, default=5, help="number of sequential bites, 1-20 (default 5)"
+    )
+    gen.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
+    gen.add_argument(
+        "--target",
+        default="uncinate",
+        help="lamella the bites perforate: uncinate (default), bulla or basal_lamella",
+    )
+    gen.add_argument(
+        "--spacing-mm",
+        type=float,
+        default=0.5,
+        help="CT voxel spacing in mm, 0.2-2.0 (default 0.5)",
+    )
+    gen.add_argument(
+        "--noise-hu", type=float, default=0.0, help="std. dev. of seeded CT noise in HU (default 0)"
+    )
+    gen.add_argument(
+        "--mucosa-mm",
+        type=float,
+        default=1.0,
+        help="soft-tissue layer over bone in the CT, mm (default 1)",
+    )
+    gen.add_argument(
+        "--roi-margin-mm",
+        type=float,
+        default=3.0,
+        help="margin of the change ROI box, mm (default 3)",
+    )
+    gen.add_argument(
+        "--mesh-edge-mm",
+        type=float,
+        default=0.5,
+        help="surface edge length in mm, 0.3-2 (default 0.5; coarser is faster)",
+    )
+    gen.add_argument(
+        "--bite-size-mm",
+        type=float,
+        nargs=2,
+        default=(2.0, 5.0),
+        metavar=("MIN", "MAX"),
+        help="cutter jaw sizes, mm",
+    )
+    gen.add_argument(
+        "--tet",
+        action="store_true",
+        help="also export a tetrahedral mesh per step (pytetwild; slow)",
+    )
+    gen.add_argument(
+        "--tet-edge-mm", type=float, default=3.0, help="tetrahedron edge length, mm (default 3)"
+    )
+    gen.add_argument(
+        "--param",
+        type=_param,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="fix a shape parameter (repeatable); `python -m phantoms params` lists names and ranges",
+    )
+    gen.add_argument(
+        "--plan",
+        type=Path,
+        help="JSON list of bites (center_mm, size_mm, R_world_from_cutter, shape) to use instead of the planned ones",
+    )
+    gen.set_defaults(func=_cmd_generate)
+
+    rep = sub.add_parser(
+        "repair",
+        help="close a surface that is not a closed manifold (pytetwild), so it can be cut",
+        description="Repair a triangle surface (holes, flipped or duplicated faces) into a closed 2-manifold. "
+        "Reads any format trimesh reads (PLY, STL, OBJ, ...), writes PLY (mm).",
+    )
+    rep.add_argument("input", type=Path, help="input surface")
+    rep.add_argument("output", type=Path, help="output PLY (written atomically)")
+    rep.add_argument(
+        "--edge-mm",
+        type=float,
+        help="tet edge length for the repair (default: 1/40 of the diagonal)",
+    )
+    rep.set_defaults(func=_cmd_repair)
+
+    par = sub.add_parser("params", help="list the shape parameters with their ranges")
+    par.set_defaults(func=_cmd_params)
+    return parser
+
+
+def _load_plan(path: Path):
+    from phantoms.bites import Bite
+
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ParameterRangeError(path, f"cannot read the bite plan: {exc}") from None
+    if not isinstance(raw, list) or not raw:
+        raise ParameterRangeError(path, "expected a non-empty JSON list of bites")
+    bites = []
+    for i, b in enumerate(raw):
+        try:
+            bites.append(
+                Bite(
+                    center_mm=tuple(b["center_mm"]),
+                    size_mm=tuple(b["size_mm"]),
+                    R_world_from_cutter=tuple(
+                        tuple(r)
+                        for r in b.get("R_world_from_cutter", [[1, 0, 0], [0, 1, 0], [0, 0, 1]])
+                    ),
+                    shape=b.get("shape", "ellipsoid"),
+                )
+            )
+        except (KeyError, TypeError) as exc:
+            raise ParameterRangeError(
+                f"{path} bite {i}", f"expected center_mm and size_mm lists: {exc}"
+            ) from None
+    return bites
+
+
+def _cmd_generate(args: argparse.Namespace) -> int:
+    from phantoms.generate import generate
+    from phantoms.params import PhantomConfig
+
+    bites = _load_plan(args.plan) if args.plan else None
+    cfg = PhantomConfig(
+        seed=args.seed,
+        n_bites=len(bites) if bites else args.bites,
+        target=args.target,
+        bite_size_mm=tuple(args.bite_size_mm),
+        spacing_mm=args.spacing_mm,
+        noise_hu=args.noise_hu,
+        mucosa_mm=args.mucosa_mm,
+        roi_margin_mm=args.roi_margin_mm,
+        mesh_edge_mm=args.mesh_edge_mm,
+        tet=args.tet,
+        tet_edge_mm=args.tet_edge_mm,
+        overrides=dict(args.param),
+    )
+    out = generate(cfg, args.out, bites=bites, show_progress=True)
+    sys.stderr.write(f"phantom written to {out}\n")
+    return 0
+
+
+def _cmd_repair(args: argparse.Namespace) -> int:
+    import numpy as np
+    import trimesh
+
+    from phantoms.errors import NotManifoldError
+    from phantoms.io import atomic_write_bytes, check_output_dir, ply_bytes
+    from phantoms.tet import repair_surface
+
+    check_output_dir(args.output)
+    try:
+        mesh = trimesh.load(args.input, force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types for unreadable files
+        raise NotManifoldError(args.input, f"cannot read a triangle mesh: {exc}") from None
+    v, f = repair_surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), edge_mm=args.edge_mm)
+    atomic_write_bytes(args.output, ply_bytes(v, f))
+    sys.stderr.write(f"repaired surface ({len(f)} triangles) written to {args.output}\n")
+    return 0
+
+
+def _cmd_params(args: argparse.Namespace) -> int:
+    from phantoms.params import PARAM_RANGES
+
+    for name, (lo, hi, doc) in PARAM_RANGES.items():
+        sys.stdout.write(f"{name:32s} [{lo:g}, {hi:g}]  {doc}\n")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0 if args.command is None else 2
+    try:
+        return int(args.func(args) or 0)
+    except PhantomError as exc:
+        sys.stderr.write(f"phantoms {args.command}: error: {exc}\n")
+        return 1

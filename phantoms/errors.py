@@ -1,0 +1,51 @@
+"""Exceptions raised at the public entry points of the phantom generator.
+
+Every error names the argument (or file) and the problem, with expected vs actual. All
+derive from :class:`PhantomError`, itself a ``ValueError`` so generic callers can catch
+bad input without importing this module. ``phantoms`` does not import ``chisel``: these
+classes mirror ``chisel.errors`` instead of reusing it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class PhantomError(ValueError):
+    """Base class of every error the phantom generator raises on purpose.
+
+    ``source`` names the argument, parameter or file; ``problem`` says what is wrong.
+    """
+
+    def __init__(self, source: str | Path, problem: str) -> None:
+        self.source = str(source)
+        self.problem = problem
+        super().__init__(f"{self.source}: {problem}")
+
+
+class UnknownParameterError(PhantomError):
+    """A parameter name (shape parameter, config field) that the generator does not know."""
+
+
+class ParameterRangeError(PhantomError):
+    """A parameter value outside its documented range (or of the wrong type)."""
+
+
+class UnknownTargetError(PhantomError):
+    """The requested target lamella does not exist in the phantom."""
+
+
+class BiteMissError(PhantomError):
+    """A bite of the surgical plan removes no tissue (the cutter lies in air)."""
+
+
+class NotManifoldError(PhantomError):
+    """A surface mesh is not a closed, oriented 2-manifold (repair it first)."""
+
+
+class OutputError(PhantomError):
+    """The output folder cannot be created or written."""
+
+
+class AnatomyError(PhantomError):
+    """The sampled anatomy violates a constraint (e.g. no airway path with clearance)."""

@@ -1,0 +1,347 @@
+"""The phantom pipeline: anatomy -> bites -> CT volumes (+ tets) -> an output folder.
+
+:func:`build_phantom` is the pure stage (configuration in, :class:`Phantom` in memory
+out); :func:`write_phantom` is the thin I/O wrapper that writes the folder atomically;
+:func:`generate` does both. The folder layout and the manifest ``phantom.json`` are
+documented in ``docs/phantoms.md``.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import manifold3d as m3d
+import numpy as np
+
+from phantoms.anatomy import Anatomy, arrays_from_manifold, build_anatomy
+from phantoms.bites import Bite, Target, apply_bites, find_target, plan_bites
+from phantoms.ct import (
+    HU_AIR,
+    HU_BONE,
+    HU_SOFT_TISSUE,
+    ISO_HU,
+    LABEL_AIR,
+    LABEL_BONE,
+    LABEL_SOFT_TISSUE,
+    CTGrid,
+    SurfaceDistance,
+    clip_distance_mm,
+    ct_noise,
+    grid_for_box,
+    hu_from_sd,
+    labels_from_sd,
+    nifti_gz_bytes,
+    update_sd,
+)
+from phantoms.io import (
+    atomic_dir,
+    atomic_write_bytes,
+    check_output_dir,
+    json_bytes,
+    ply_bytes,
+    rounded,
+)
+from phantoms.params import PARAM_RANGES, PhantomConfig, sample_params
+from phantoms.path import airway_path
+
+log = logging.getLogger(__name__)
+
+FORMAT = "endoscopic-chisel/phantom"
+VERSION = 1
+WORLD_FRAME = (
+    "mm; +x lateral (towards the maxillary sinus), +y posterior (nostril -> choana), +z superior; "
+    "one nasal side (the patient's left: the frame is DICOM LPS), septum midline face at x = -3.5, "
+    "nostril on the plane y = 0, nasal floor near z = 0"
+)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One surgical step: the tissue solid and its CT volumes."""
+
+    name: str
+    vertices_mm: np.ndarray
+    """(V, 3) float64, mm."""
+    faces: np.ndarray
+    """(F, 3) int64, counter-clockwise seen from outside the tissue."""
+    volume_mm3: float
+    removed_volume_mm3: float
+    label: np.ndarray
+    """(nx, ny, nz) uint8: 0 air, 1 soft tissue, 2 bone."""
+    hu: np.ndarray
+    """(nx, ny, nz) int16 Hounsfield-like units."""
+    cutter_vertices_mm: np.ndarray | None = None
+    cutter_faces: np.ndarray | None = None
+    tet_points_mm: np.ndarray | None = None
+    """(P, 3) float64, mm; only with ``config.tet``."""
+    tets: np.ndarray | None = None
+    """(T, 4) int, VTK ordering (positive volume)."""
+
+
+@dataclass(frozen=True)
+class Phantom:
+    """A generated phantom in memory (everything the folder holds)."""
+
+    config: PhantomConfig
+    params: dict
+    anatomy: Anatomy
+    target: Target
+    bites: tuple[Bite, ...]
+    steps: tuple[Step, ...]
+    grid: CTGrid
+    roi_min_mm: np.ndarray
+    roi_max_mm: np.ndarray
+    airway_path_mm: np.ndarray
+    """(N, 3) float64, mm."""
+
+
+def build_phantom(
+    config: PhantomConfig,
+    bites: list[Bite] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Phantom:
+    """Generate the anatomy, apply the bite plan, and voxelise every step.
+
+    Parameters
+    ----------
+    config : PhantomConfig
+    bites : list of Bite, optional
+        An explicit surgical plan; by default :func:`phantoms.bites.plan_bites` makes
+        ``config.n_bites`` bites on ``config.target``.
+    progress : callable, optional
+        Called with a short message as each stage finishes.
+
+    Raises
+    ------
+    BiteMissError, UnknownTargetError, AnatomyError, ParameterRangeError
+    """
+    note = progress or (lambda _msg: None)
+    params = sample_params(config.seed, config.overrides)
+    anatomy = build_anatomy(params, config.seed, config.mesh_edge_mm)
+    note("anatomy")
+    if bites is None:
+        target, bites = plan_bites(
+            anatomy, config.target, config.n_bites, config.bite_size_mm, config.seed
+        )
+    else:
+        target, _, _ = find_target(anatomy, config.target)
+    results = apply_bites(anatomy.tissue, bites, edge_mm=min(config.mesh_edge_mm, 0.3))
+    note("bites")
+
+    roi_lo = (
+        np.min([np.asarray(r.removed.bounding_box()[:3]) for r in results], axis=0)
+        - config.roi_margin_mm
+    )
+    roi_hi = (
+        np.max([np.asarray(r.removed.bounding_box()[3:]) for r in results], axis=0)
+        + config.roi_margin_mm
+    )
+
+    grid = grid_for_box(anatomy.block_min_mm, anatomy.block_max_mm, config.spacing_mm)
+    clip = clip_distance_mm(config.spacing_mm, config.mucosa_mm)
+    noise = ct_noise(grid.shape, config.noise_hu, config.seed)
+
+    solids: list[tuple[str, m3d.Manifold, float, m3d.Manifold | None]] = [
+        ("preop", anatomy.tissue, 0.0, None)
+    ]
+    solids += [
+        (f"bite_{k}", r.tissue, r.removed_volume_mm3, r.cutter)
+        for k, r in enumerate(results, start=1)
+    ]
+    steps: list[Step] = []
+    sd = None
+    path = None
+    for k, (name, solid, removed, cutter) in enumerate(solids):
+        v, f = arrays_from_manifold(solid)
+        surface = SurfaceDistance(v, f)
+        if sd is None:
+            sd = surface.signed_distance_grid(grid.points(), clip, grid.spacing_mm)
+            path = airway_path(
+                surface,
+                np.asarray(anatomy.nostril_mm),
+                anatomy.airway_min_mm,
+                anatomy.airway_max_mm,
+                target,
+            )
+            note("airway path")
+        else:
+            box = cutter.bounding_box()
+            sd = update_sd(sd, grid, surface, np.asarray(box[:3]), np.asarray(box[3:]), clip)
+        cv = cf = None
+        if cutter is not None:
+            cv, cf = arrays_from_manifold(cutter)
+        tet_pts = tets = None
+        if config.tet:
+            from phantoms.tet import tetrahedralize
+
+            tet_pts, tets = tetrahedralize(v, f, config.tet_edge_mm)
+        steps.append(
+            Step(
+                name=name,
+                vertices_mm=v,
+                faces=f,
+                volume_mm3=float(solid.volume()),
+                removed_volume_mm3=float(removed),
+                label=labels_from_sd(sd, config.mucosa_mm),
+                hu=hu_from_sd(sd, config.spacing_mm, config.mucosa_mm, noise),
+                cutter_vertices_mm=cv,
+                cutter_faces=cf,
+                tet_points_mm=tet_pts,
+                tets=tets,
+            )
+        )
+        note(f"step {k} volumes")
+    assert path is not None
+    return Phantom(
+        config=config,
+        params=params,
+        anatomy=anatomy,
+        target=target,
+        bites=tuple(bites),
+        steps=tuple(steps),
+        grid=grid,
+        roi_min_mm=roi_lo,
+        roi_max_mm=roi_hi,
+        airway_path_mm=path,
+    )
+
+
+def manifest(ph: Phantom) -> dict:
+    """The ``phantom.json`` contract (paths relative to the output folder)."""
+    steps = []
+    for k, st in enumerate(ph.steps):
+        entry: dict = {"step": k, "name": st.name, "mesh": f"meshes/step_{k:02d}.ply"}
+        if st.cutter_vertices_mm is not None:
+            entry["cutter_mesh"] = f"meshes/cutter_{k:02d}.ply"
+        entry["ct_label"] = f"ct/step_{k:02d}_label.nii.gz"
+        entry["ct_hu"] = f"ct/step_{k:02d}_hu.nii.gz"
+        if st.tets is not None:
+            entry["tet_mesh"] = f"tet/step_{k:02d}.vtu"
+        entry["volume_mm3"] = st.volume_mm3
+        entry["removed_volume_mm3"] = st.removed_volume_mm3
+        if k > 0:
+            entry["bite"] = ph.bites[k - 1].to_dict()
+        steps.append(entry)
+    a = ph.anatomy
+    cfg = asdict(ph.config)
+    cfg["bite_size_mm"] = list(cfg["bite_size_mm"])
+    params = dict(ph.params)
+    params["ethmoid_cells_mm"] = [
+        {
+            "name": c.name,
+            "center_mm": list(c.center_mm),
+            "radius_mm": c.radius_mm,
+            "wall_mm": c.wall_mm,
+        }
+        for c in a.cells
+    ]
+    params["maxillary_sinus"] = {
+        "center_mm": list(a.maxillary_center_mm),
+        "semi_axes_mm": list(a.maxillary_semi_axes_mm),
+        "volume_mm3": a.maxillary_volume_mm3,
+    }
+    params["block_mm"] = [list(a.block_min_mm), list(a.block_max_mm)]
+    params["nostril_mm"] = list(a.nostril_mm)
+    return rounded(
+        {
+            "format": FORMAT,
+            "version": VERSION,
+            "seed": ph.config.seed,
+            "params": params,
+            "param_ranges": {k: [lo, hi] for k, (lo, hi, _) in PARAM_RANGES.items()},
+            "world_frame": WORLD_FRAME,
+            "steps": steps,
+            "roi_box_mm": [list(ph.roi_min_mm), list(ph.roi_max_mm)],
+            "target": {
+                "name": ph.target.name,
+                "center_mm": list(ph.target.center_mm),
+                "normal": list(ph.target.normal),
+                "thickness_mm": ph.target.thickness_mm,
+            },
+            "airway_path_mm": ph.airway_path_mm.tolist(),
+            "ct": {
+                "spacing_mm": ph.grid.spacing_mm,
+                "shape": list(ph.grid.shape),
+                "T_world_from_voxel": ph.grid.T_world_from_voxel.tolist(),
+                "labels": {"air": LABEL_AIR, "soft_tissue": LABEL_SOFT_TISSUE, "bone": LABEL_BONE},
+                "hu": {"air": HU_AIR, "soft_tissue": HU_SOFT_TISSUE, "bone": HU_BONE},
+                "iso_hu": ISO_HU,
+                "mucosa_mm": ph.config.mucosa_mm,
+                "noise_hu": ph.config.noise_hu,
+            },
+            "config": cfg,
+        }
+    )
+
+
+def write_phantom(
+    ph: Phantom, out_dir: str | Path, progress: Callable[[str], None] | None = None
+) -> Path:
+    """Write the phantom folder atomically (see ``docs/phantoms.md`` for the layout)."""
+    note = progress or (lambda _msg: None)
+    out_dir = Path(out_dir)
+    with atomic_dir(out_dir) as tmp:
+        T = ph.grid.T_world_from_voxel
+        for k, st in enumerate(ph.steps):
+            atomic_write_bytes(
+                tmp / f"meshes/step_{k:02d}.ply", ply_bytes(st.vertices_mm, st.faces)
+            )
+            if st.cutter_vertices_mm is not None:
+                atomic_write_bytes(
+                    tmp / f"meshes/cutter_{k:02d}.ply",
+                    ply_bytes(st.cutter_vertices_mm, st.cutter_faces),
+                )
+            atomic_write_bytes(
+                tmp / f"ct/step_{k:02d}_label.nii.gz",
+                nifti_gz_bytes(st.label, T, "label 0 air 1 soft 2 bone"),
+            )
+            atomic_write_bytes(
+                tmp / f"ct/step_{k:02d}_hu.nii.gz",
+                nifti_gz_bytes(st.hu, T, "Hounsfield-like units"),
+            )
+            if st.tets is not None:
+                from phantoms.tet import vtu_bytes
+
+                atomic_write_bytes(
+                    tmp / f"tet/step_{k:02d}.vtu", vtu_bytes(st.tet_points_mm, st.tets)
+                )
+            note(f"wrote step {k}")
+        atomic_write_bytes(tmp / "phantom.json", json_bytes(manifest(ph)))
+    return out_dir
+
+
+def generate(
+    config: PhantomConfig,
+    out_dir: str | Path,
+    bites: list[Bite] | None = None,
+    show_progress: bool = False,
+) -> Path:
+    """Build a phantom and write it to ``out_dir`` (replaced only on success).
+
+    The output folder is checked before any work, so an unwritable one fails fast with
+    :class:`~phantoms.errors.OutputError`.
+    """
+    check_output_dir(out_dir)
+    total = 3 + 2 * ((config.n_bites if bites is None else len(bites)) + 1)
+    bar = None
+    if show_progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc="phantom", unit="stage", file=sys.stderr, leave=False)
+
+    def note(msg: str) -> None:
+        log.debug(msg)
+        if bar is not None:
+            bar.set_postfix_str(msg, refresh=False)
+            bar.update(1)
+
+    try:
+        ph = build_phantom(config, bites, note)
+        return write_phantom(ph, out_dir, note)
+    finally:
+        if bar is not None:
+            bar.close()

@@ -1,0 +1,133 @@
+"""Output helpers: atomic folders, deterministic mesh and JSON bytes.
+
+``phantoms`` does not import ``chisel``, so this is its own small copy of the atomic-write
+rule: build in a temporary sibling, then rename; an existing folder is replaced only on
+success, and a failure leaves it (and no half-written sibling) behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from phantoms.errors import OutputError
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def check_output_dir(path: str | Path) -> Path:
+    """Raise :class:`OutputError` unless ``path``'s parent can hold a new folder."""
+    path = Path(path).absolute()
+    if path.exists() and not path.is_dir():
+        raise OutputError(path, "exists and is not a folder")
+    parent = path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(
+            path, f"cannot create the parent folder {parent}: {exc.strerror or exc}"
+        ) from None
+    if not parent.is_dir():
+        raise OutputError(path, f"parent {parent} is not a folder")
+    # root ignores permission bits, so probe by creating a temporary entry
+    try:
+        probe = tempfile.mkdtemp(prefix=f".{path.name}.probe-", dir=parent)
+        os.rmdir(probe)
+    except OSError as exc:
+        raise OutputError(
+            path, f"parent folder {parent} is not writable: {exc.strerror or exc}"
+        ) from None
+    return path
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary folder beside ``path``; on success it replaces ``path``."""
+    path = check_output_dir(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; give the usual mode
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            if old.exists():
+                shutil.rmtree(old)
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary sibling and a rename."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    except OSError as exc:
+        raise OutputError(path, f"cannot write: {exc.strerror or exc}") from None
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual mode
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def ply_bytes(vertices_mm: np.ndarray, faces: np.ndarray) -> bytes:
+    """Binary little-endian PLY of a triangle mesh.
+
+    vertices_mm : (V, 3) float, written as float64 mm.  faces : (F, 3) int, written as int32.
+    """
+    v = np.ascontiguousarray(vertices_mm, dtype="<f8")
+    f = np.ascontiguousarray(faces, dtype="<i4")
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment units mm\n"
+        f"element vertex {len(v)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode("ascii")
+    face_rec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    face_rec["n"] = 3
+    face_rec["idx"] = f
+    return header + v.tobytes() + face_rec.tobytes()
+
+
+def json_bytes(obj: object) -> bytes:
+    """Deterministic pretty JSON (keys in insertion order, newline at the end)."""
+    return (json.dumps(obj, indent=1) + "\n").encode("utf-8")
+
+
+def rounded(x, digits: int = 6):
+    """Floats (and nested lists/arrays of them) rounded for a stable, readable manifest."""
+    if isinstance(x, dict):
+        return {k: rounded(v, digits) for k, v in x.items()}
+    if isinstance(x, list | tuple | np.ndarray):
+        return (
+            [rounded(v, digits) for v in np.asarray(x).tolist()]
+            if isinstance(x, np.ndarray)
+            else [rounded(v, digits) for v in x]
+        )
+    if isinstance(x, bool | str) or x is None:
+        return x
+    if isinstance(x, int | np.integer):
+        return int(x)
+    return round(float(x), digits)
