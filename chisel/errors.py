@@ -54,3 +54,6 @@ class OutputError(ChiselError, OSError):
         self.source = str(path)
         self.problem = f"cannot write output: {exc.strerror or exc}"
         OSError.__init__(self, exc.errno, f"{self.source}: {self.problem}")
+
+    def __str__(self) -> str:  # "file: problem" like every other ChiselError, no "[Errno n]"
+        return f"{self.source}: {self.problem}"
