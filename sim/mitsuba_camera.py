@@ -95,8 +95,17 @@ class RenderGrid:
         return np.stack([x, y, np.ones_like(x)], axis=-1)
 
 
-def render_grid(camera: Camera, max_upscale: float = 3.0, margin_px: float = 2.0) -> RenderGrid:
+def render_grid(
+    camera: Camera,
+    max_upscale: float = 3.0,
+    margin_px: float = 2.0,
+    used: np.ndarray | None = None,
+) -> RenderGrid:
     """The Mitsuba render grid for ``camera`` (see :class:`RenderGrid`).
+
+    used : optional (H, W) bool, the raw pixels whose colour matters (the field stop); the
+    grid then only covers their rays (fewer samples to render), and the other pixels map
+    outside it (black after the remap).
 
     Raises :class:`CameraError` if the distortion needs a grid larger than ``max_upscale``
     times the camera's pixel count (a distortion model that folds over or is extreme).
@@ -123,8 +132,13 @@ def render_grid(camera: Camera, max_upscale: float = 3.0, margin_px: float = 2.0
         )
     # Keep the centre's resolution: the raw image is sharpest there.
     f = max(camera.fx, camera.fy)
-    xmin, xmax = float(x.min()), float(x.max())
-    ymin, ymax = float(y.min()), float(y.max())
+    sel = np.ones(camera.shape, dtype=bool) if used is None else np.asarray(used, dtype=bool)
+    if sel.shape != camera.shape or not sel.any():
+        raise CameraError(
+            "used", f"expected a non-empty {camera.shape} pixel mask, got {sel.shape}"
+        )
+    xmin, xmax = float(x[sel].min()), float(x[sel].max())
+    ymin, ymax = float(y[sel].min()), float(y[sel].max())
     width = int(math.ceil(f * (xmax - xmin) + 2 * margin_px)) + 1
     height = int(math.ceil(f * (ymax - ymin) + 2 * margin_px)) + 1
     if width * height > max_upscale * camera.width * camera.height:
@@ -161,17 +175,26 @@ def remap_to_camera(image: np.ndarray, grid: RenderGrid, nearest: bool) -> np.nd
     return out
 
 
-def z_depth_from_ray_length(t_mm: np.ndarray, rays_cam: np.ndarray) -> np.ndarray:
+def unit_rays(rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ray directions and their z-depth per unit length.
+
+    rays_cam : (H, W, 3) float, rays with z = 1 (OpenCV), as from ``Camera.rays_cam()``.
+    Returns (dirs (H, W, 3) float32 unit vectors, z_per_mm (H, W) float32 = 1 / |r|).
+    """
+    norm = np.linalg.norm(np.asarray(rays_cam, dtype=np.float64), axis=-1)
+    return (rays_cam / norm[..., None]).astype(np.float32), (1.0 / norm).astype(np.float32)
+
+
+def z_depth_from_ray_length(t_mm: np.ndarray, z_per_mm: np.ndarray) -> np.ndarray:
     """z-depth from the length along *unit* ray directions starting at the optical centre.
 
-    t_mm : (..., H, W) float, distance along the unit direction ``r / |r|``, inf on a miss.
-    rays_cam : (H, W, 3) float, rays with z = 1 (OpenCV), as from ``Camera.rays_cam()``.
+    t_mm : (..., H, W) float32, distance along the unit direction ``r / |r|``, inf on a miss.
+    z_per_mm : (H, W) float32 ``1 / |r|`` from :func:`unit_rays` (the ray's z component).
     Returns (..., H, W) float32 z-depth in mm, NaN on a miss.
     """
-    norm = np.linalg.norm(rays_cam, axis=-1)
-    t = np.asarray(t_mm, dtype=np.float64)
-    z = t / norm
-    return np.where(np.isfinite(z) & (z > 0), z, np.nan).astype(np.float32)
+    z = np.asarray(t_mm, dtype=np.float32) * z_per_mm
+    z[~(np.isfinite(z) & (z > 0))] = np.nan
+    return z
 
 
 def z_depth_from_mitsuba_depth(

@@ -24,9 +24,11 @@ from sim.appearance import TextureVolume
 from sim.config import SimConfig
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain
 from sim.mitsuba_camera import (
+    RenderGrid,
     mitsuba_to_world,
     remap_to_camera,
     render_grid,
+    unit_rays,
     z_depth_from_mitsuba_depth,
     z_depth_from_ray_length,
 )
@@ -73,15 +75,22 @@ class MeshRenderer:
             raise ValueError("MeshRenderer: a texture volume is required to render RGB")
         self.mi, self.variant = load_mitsuba(cfg.variant)
         mi = self.mi
+        import drjit  # noqa: PLC0415 - only after mitsuba picked the variant
+
+        self.drjit = drjit
         mi.set_log_level(mi.LogLevel.Warn)
         self.jit = self.variant != "scalar_rgb"
         self.camera = cfg.camera.camera()
-        self.grid = render_grid(self.camera, cfg.camera.max_render_upscale)
         self.field_stop = field_stop_mask(cfg.camera)
+        # Colour only matters inside the field stop: the render grid covers just those rays.
+        self.grid = render_grid(self.camera, cfg.camera.max_render_upscale, used=self.field_stop)
         self._gain = vignetting_gain(cfg.camera)
-        rays = self.camera.rays_cam()
-        self._rays_cam = rays
-        self._dirs_cam = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3)
+        dirs, self._z_per_mm = unit_rays(self.camera.rays_cam())
+        # Unit ray directions of every raw pixel (camera frame), uploaded once; per frame
+        # only the poses travel to drjit and rays are built by gathers (no recompilation).
+        self._dirs_cam = (
+            mi.Vector3f(np.ascontiguousarray(dirs.reshape(-1, 3).T)) if self.jit else None
+        )
 
         props = mi.Properties()
         if not self.depth_only:
@@ -147,8 +156,10 @@ class MeshRenderer:
         )
         self._depth_sensor = None
 
-    def _sensor_dict(self, sampler: dict, pixel_format: str) -> dict:
-        g = self.grid
+    def _sensor_dict(
+        self, sampler: dict, pixel_format: str, grid: RenderGrid | None = None
+    ) -> dict:
+        g = self.grid if grid is None else grid
         ppo_x, ppo_y = g.principal_point_offset()
         return {
             "type": "perspective",
@@ -180,17 +191,24 @@ class MeshRenderer:
         H, W = self.camera.shape
         if not self.jit:
             return np.stack([self._depth_via_sensor(t) for t in T])
-        mi = self.mi
+        mi, dr = self.mi, self.drjit
         n_pix = H * W
-        dirs = np.einsum("nij,pj->nip", T[:, :3, :3], self._dirs_cam).astype(
-            np.float32
-        )  # (N, 3, P)
-        dirs = np.ascontiguousarray(dirs.transpose(1, 0, 2).reshape(3, -1))
-        origins = np.ascontiguousarray(np.repeat(T[:, :3, 3].T, n_pix, axis=1).astype(np.float32))
-        ray = mi.Ray3f(mi.Point3f(origins), mi.Vector3f(dirs))
-        si = self.scene.ray_intersect_preliminary(ray, coherent=True)
+        idx = dr.arange(mi.UInt32, len(T) * n_pix)
+        frame = idx // n_pix
+        pixel = idx - frame * n_pix
+        rot = mi.Float(np.ascontiguousarray(T[:, :3, :3].reshape(-1), dtype=np.float32))
+        org = mi.Float(np.ascontiguousarray(T[:, :3, 3].reshape(-1), dtype=np.float32))
+        d_cam = dr.gather(mi.Vector3f, self._dirs_cam, pixel)
+        R = [dr.gather(mi.Float, rot, frame * 9 + k) for k in range(9)]
+        d_world = mi.Vector3f(
+            R[0] * d_cam.x + R[1] * d_cam.y + R[2] * d_cam.z,
+            R[3] * d_cam.x + R[4] * d_cam.y + R[5] * d_cam.z,
+            R[6] * d_cam.x + R[7] * d_cam.y + R[8] * d_cam.z,
+        )
+        o_world = mi.Point3f(*(dr.gather(mi.Float, org, frame * 3 + k) for k in range(3)))
+        si = self.scene.ray_intersect_preliminary(mi.Ray3f(o_world, d_world), coherent=True)
         t = np.array(si.t, dtype=np.float32).reshape(len(T), H, W)
-        return z_depth_from_ray_length(t, self._rays_cam)
+        return z_depth_from_ray_length(t, self._z_per_mm)
 
     def _depth_via_sensor(self, T_world_from_cam: np.ndarray) -> np.ndarray:
         """Depth from the sensor's ``depth`` AOV (scalar_rgb has no vectorised ray queries).
@@ -201,9 +219,13 @@ class MeshRenderer:
         """
         mi = self.mi
         if self._depth_sensor is None:
+            # Depth is needed at every pixel, not just inside the field stop: a full grid.
+            self._depth_grid = render_grid(self.camera, self.cfg.camera.max_render_upscale)
             self._depth_sensor = mi.load_dict(
                 self._sensor_dict(
-                    {"type": "stratified", "sample_count": 1, "jitter": False}, "luminance"
+                    {"type": "stratified", "sample_count": 1, "jitter": False},
+                    "luminance",
+                    self._depth_grid,
                 )
             )
             self._depth_sensor_params = mi.traverse(self._depth_sensor)
@@ -216,8 +238,8 @@ class MeshRenderer:
             self.scene, sensor=self._depth_sensor, integrator=self._depth_integrator, spp=1
         )
         aov = np.array(img, dtype=np.float32)[..., -1]
-        z_grid = z_depth_from_mitsuba_depth(aov, self.grid, self.cfg.camera.near_clip_mm)
-        z = remap_to_camera(np.nan_to_num(z_grid, nan=0.0), self.grid, nearest=True)
+        z_grid = z_depth_from_mitsuba_depth(aov, self._depth_grid, self.cfg.camera.near_clip_mm)
+        z = remap_to_camera(np.nan_to_num(z_grid, nan=0.0), self._depth_grid, nearest=True)
         return np.where(z > 0, z, np.nan).astype(np.float32)
 
     # -- colour --------------------------------------------------------------------------

@@ -1,0 +1,102 @@
+"""Rendering speed and memory of the endoscope simulator at 320x256.
+
+Goals (2-core CPU, llvm_ad_rgb): depth-only >= 200 frames/s; RGB (direct lighting,
+16 spp) + depth >= 20 frames/s; resident memory flat over 1000 frames.
+
+Usage: python benchmarks/bench_render.py [--phantom DIR] [--frames 1000] [--spp 16]
+
+Without ``--phantom`` it renders the toy phantom of :mod:`sim.synthetic` (a few thousand
+triangles); pass a generated phantom to measure on real anatomy. Frames cycle through an
+80-frame intraoperative path. Prints ``name: value`` lines, ``rgbd_fps`` last.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim.appearance import texture_volume
+from sim.collision import TissueDistance
+from sim.config import SimConfig, replace_in
+from sim.paths import intraop_path
+from sim.phantom import load_mesh, load_phantom
+from sim.pipeline import _texture_box, path_target
+from sim.render import MeshRenderer
+from sim.synthetic import write_toy_phantom
+
+
+def rss_mb() -> float:
+    """Current resident set size in MiB (Linux /proc)."""
+    with open("/proc/self/statm") as fh:
+        pages = int(fh.read().split()[1])
+    return pages * resource.getpagesize() / 2**20
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--phantom", type=Path, help="phantom folder (default: the toy phantom)")
+    ap.add_argument("--frames", type=int, default=1000, help="RGB-D frames for speed and memory")
+    ap.add_argument("--depth-frames", type=int, default=1000, help="depth-only frames")
+    ap.add_argument("--spp", type=int, default=16, help="samples per pixel of the RGB render")
+    ap.add_argument("--batch", type=int, default=8, help="frames per depth-only ray-cast call")
+    args = ap.parse_args()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        phantom_dir = args.phantom or write_toy_phantom(Path(tmp) / "toy", n_bites=1)
+        phantom = load_phantom(phantom_dir)
+        mesh = load_mesh(phantom.steps[-1].mesh_path)
+    cfg = replace_in(SimConfig(), **{"imaging.spp": args.spp})
+    poses = intraop_path(path_target(phantom), TissueDistance(mesh), 80, seed=0, cfg=cfg.paths)
+    print(f"faces: {len(mesh.faces)}")
+    print(f"image: {cfg.camera.width}x{cfg.camera.height}")
+
+    depth_r = MeshRenderer(mesh, replace_in(cfg, depth_only=True), depth_only=True)
+    print(f"variant: {depth_r.variant}")
+    depth_r.render_depth(poses[: args.batch])  # compile
+    n = 0
+    t0 = time.perf_counter()
+    while n < args.depth_frames:
+        idx = np.arange(n, n + args.batch) % len(poses)
+        depth_r.render_depth(poses[idx])
+        n += args.batch
+    depth_fps = n / (time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    for i in range(100):
+        depth_r.render_depth(poses[i % len(poses)])
+    print(f"depth_fps_single_frame_calls: {100 / (time.perf_counter() - t0):.1f}")
+    print(f"depth_fps: {depth_fps:.1f}")
+    del depth_r
+
+    tex = texture_volume(_texture_box(mesh), cfg.appearance, 0)
+    r = MeshRenderer(mesh, cfg, tex)
+    for i in range(3):  # compile and warm up
+        r.render(poses[i], index=i)
+    rss0 = rss_mb()
+    t_rgb = 0.0
+    t0 = time.perf_counter()
+    for i in range(args.frames):
+        r.render(poses[i % len(poses)], index=i)
+        if i == 99:
+            rss100 = rss_mb()
+    elapsed = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    for i in range(20):
+        r.render_radiance(poses[i], seed=i)
+    t_rgb = (time.perf_counter() - t1) / 20
+    rss1 = rss_mb()
+    print(f"rgb_render_ms: {1000 * t_rgb:.1f}")
+    print(f"rss_start_mb: {rss0:.1f}")
+    print(f"rss_growth_frames_100_to_{args.frames}_mb: {rss1 - rss100:.1f}")
+    print(f"rss_growth_mb: {rss1 - rss0:.1f}")
+    print(f"rgbd_fps: {args.frames / elapsed:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
