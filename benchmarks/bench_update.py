@@ -1,0 +1,216 @@
+"""Speed and memory of the updater on a generated phantom (``name: value`` lines).
+
+Scene: ``python -m phantoms generate`` (seed, 1 bite) when the phantom generator is
+installed; camera poses along the phantom's airway path looking at the bite target
+(``chisel.geometry.look_at``), ground-truth depth by ray casting the step meshes
+(``sim`` is not needed). Falls back to the analytic test room with ``--scene room``.
+
+Measured, at 320x256 and 0.5 mm voxels by default:
+
+* plain fusion of the preoperative frames: ours (``chisel.fusion.integrate``) vs Open3D
+  ``o3d.t.geometry.VoxelBlockGrid.integrate`` on the same depth maps in the same run
+  (best of ``--repeats``; depth rendering excluded from both);
+* the per-frame update of one surgical step (render of the model, scale, sequence-level
+  RANSAC + ICP, per-frame ICP, re-projection, change mask, masked integration), with a
+  monocular-like depth (ground truth times an unknown scale) and tracked poses carrying
+  a 2 mm / 2 deg hand-eye error plus jitter: ``update_fps`` = frames / wall time of the
+  whole step (batch ``update_step``), and the streaming ``ChiselUpdater`` rate;
+* peak resident memory of the process.
+
+Goals: update_fps >= 30, fusion_ratio_vs_open3d >= 1.0, peak_rss_mib <= 4096.
+Timings on a shared machine are pessimistic; run alone for figures worth quoting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from chisel.depth_source import CallableDepth
+from chisel.fusion import integrate
+from chisel.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
+from chisel.model import TsdfModel
+from chisel.raycast import MeshRaycaster
+from chisel.sequence import Frame
+from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, preop_bounds, update_step
+
+
+def _pose_error(shift_mm: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    t = rng.normal(size=3)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(axis * np.radians(angle_deg)).as_matrix()
+    T[:3, 3] = t / np.linalg.norm(t) * shift_mm
+    return T
+
+
+def phantom_scene(seed: int, workdir: Path) -> dict:
+    """Meshes and camera poses from a generated phantom (1 bite)."""
+    out = workdir / "phantom"
+    subprocess.run(
+        [sys.executable, "-m", "phantoms", "generate", "--seed", str(seed), "--bites", "1",
+         "--out", str(out)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    man = json.loads((out / "phantom.json").read_text())
+    meshes = [trimesh.load(out / s["mesh"], force="mesh") for s in man["steps"]]
+    c = np.asarray(man["target"]["center_mm"], float)
+    n = np.asarray(man["target"]["normal"], float)
+    path = np.asarray(man["airway_path_mm"], float)
+    # Densify the airway polyline; keep points on the airway side of the target, 6-25 mm away.
+    t = np.linspace(0.0, 1.0, 10, endpoint=False)[:, None]
+    dense = np.concatenate([a + (b - a) * t for a, b in zip(path[:-1], path[1:], strict=True)])
+    d = np.linalg.norm(dense - c, axis=1)
+    ok = (d > 6.0) & (d < 25.0) & ((dense - c) @ n > 2.0)
+    eyes = dense[ok]
+    if len(eyes) < 3:
+        raise RuntimeError("phantom: no airway point sees the target from 6-25 mm")
+    return {"name": f"phantom seed {seed}", "preop": meshes[0], "step": meshes[1],
+            "eyes": eyes, "target": c}  # fmt: skip
+
+
+def room_scene() -> dict:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from test_updater_scenes import bitten_mesh, tissue_mesh
+
+    tissue = tissue_mesh()
+    eyes = np.random.default_rng(0).uniform(-3, 3, (50, 3)) + [0, 0, 2]
+    return {"name": "analytic room", "preop": tissue, "step": bitten_mesh(tissue),
+            "eyes": eyes, "target": np.array([-3.0, -3.0, 25.0])}  # fmt: skip
+
+
+def make_poses(scene: dict, n: int, spread_mm: float, rng: np.random.Generator) -> np.ndarray:
+    out = []
+    for _ in range(n):
+        eye = scene["eyes"][rng.integers(len(scene["eyes"]))]
+        target = scene["target"] + rng.uniform(-spread_mm, spread_mm, 3)
+        out.append(look_at(eye, target, [0.0, 0.0, 1.0] if scene["name"] != "analytic room"
+                           else [0.0, -1.0, 0.0]))  # fmt: skip
+    return np.stack(out)
+
+
+def bench_fusion(model0: TsdfModel, cam: Camera, poses: np.ndarray, depths: list, repeats: int):
+    import open3d as o3d
+
+    ours = []
+    for _ in range(repeats):
+        m = model0.copy()
+        t0 = time.perf_counter()
+        for T, d in zip(poses, depths, strict=True):
+            integrate(m, cam, T, d)
+        ours.append(time.perf_counter() - t0)
+    K = o3d.core.Tensor(cam.K, o3d.core.float64)
+    trunc_mult = model0.trunc_mm / model0.voxel_size_mm
+    imgs = [o3d.t.geometry.Image(o3d.core.Tensor(np.nan_to_num(d, nan=0.0))) for d in depths]
+    exts = [o3d.core.Tensor(invert_rigid(T), o3d.core.float64) for T in poses]
+    theirs = []
+    for _ in range(repeats):
+        vbg = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight"),
+            attr_dtypes=(o3d.core.float32, o3d.core.float32),
+            attr_channels=((1), (1)),
+            voxel_size=model0.voxel_size_mm,
+            block_resolution=8,
+            block_count=100_000,
+        )
+        t0 = time.perf_counter()
+        for img, ext in zip(imgs, exts, strict=True):
+            blocks = vbg.compute_unique_block_coordinates(
+                img, K, ext, depth_scale=1.0, depth_max=200.0, trunc_voxel_multiplier=trunc_mult
+            )
+            vbg.integrate(blocks, img, K, ext, depth_scale=1.0, depth_max=200.0,
+                          trunc_voxel_multiplier=trunc_mult)  # fmt: skip
+        theirs.append(time.perf_counter() - t0)
+    return min(ours) / len(poses), min(theirs) / len(poses)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", choices=("phantom", "room"), default="phantom")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=256)
+    ap.add_argument("--voxel-mm", type=float, default=0.5)
+    ap.add_argument("--preop-frames", type=int, default=60)
+    ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    rng = np.random.default_rng(args.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = phantom_scene(args.seed, Path(tmp)) if args.scene == "phantom" else room_scene()
+    cam = Camera.from_fov(args.width, args.height, 80.0)
+    print(f"scene: {scene['name']}")
+    print(f"image: {args.width}x{args.height}")
+
+    # --- preoperative fusion, ours vs Open3D on the same depth maps
+    pre = make_poses(scene, args.preop_frames, 10.0, rng)
+    rc_pre = MeshRaycaster.from_trimesh(scene["preop"])
+    depths = [rc_pre.render_depth(cam, T) for T in pre]
+    cfg = BuildConfig(voxel_size_mm=args.voxel_mm, trunc_mm=4 * args.voxel_mm)
+    lo, hi = preop_bounds(scene["preop"], pre, cfg)
+    model0 = TsdfModel.empty(lo, hi, cfg.voxel_size_mm, cfg.trunc_mm)
+    integrate(model0.copy(), cam, pre[0], depths[0])  # JIT warm-up
+    ours, o3d_t = bench_fusion(model0, cam, pre, depths, args.repeats)
+    print(f"model_voxels: {'x'.join(map(str, model0.shape))}")
+    print(f"fusion_ms_per_frame: {ours * 1000:.2f}")
+    print(f"open3d_fusion_ms_per_frame: {o3d_t * 1000:.2f}")
+    print(f"fusion_ratio_vs_open3d: {o3d_t / ours:.2f}")
+    model = model0.copy()
+    for T, d in zip(pre, depths, strict=True):
+        integrate(model, cam, T, d)
+
+    # --- one surgical step: monocular-like depth, tracked poses with hand-eye error + jitter
+    true = make_poses(scene, args.frames, 4.0, rng)
+    E = _pose_error(2.0, 2.0, rng)
+    tracked = np.stack([T @ E @ _pose_error(0.2, 0.2, rng) for T in true])
+    rc_step = MeshRaycaster.from_trimesh(scene["step"])
+    frames = [
+        Frame(i, tracked[i], depth_mm=rc_step.render_depth(cam, true[i]), T_world_from_cam_true=true[i])
+        for i in range(args.frames)
+    ]
+    k = 0.0371  # unknown monocular scale
+    source = CallableDepth(lambda f: f.depth_mm * k)
+    update_step(model, cam, frames[:5], source, UpdateConfig())  # warm-up (JIT, Open3D)
+    t0 = time.perf_counter()
+    new, report = update_step(model, cam, frames, source, UpdateConfig())
+    batch_s = time.perf_counter() - t0
+    used = [f for f in report.frames if f.used]
+    errs = []
+    for f in used:
+        C = np.asarray(f.registration["T_model_from_est"])
+        D = invert_rigid(true[f.index]) @ C @ tracked[f.index]
+        errs.append((np.linalg.norm(D[:3, 3]), rotation_angle_deg(D[:3, :3]), abs(f.scale * k - 1)))
+    errs_a = np.array(errs) if errs else np.full((1, 3), np.nan)
+    print(f"update_frames_used: {len(used)}/{args.frames}")
+    print(f"update_changed_fraction_mean: {np.mean([f.changed_fraction for f in used]):.4f}")
+    print(f"registration_error_mm_mean: {errs_a[:, 0].mean():.3f}")
+    print(f"registration_error_deg_mean: {errs_a[:, 1].mean():.3f}")
+    print(f"scale_error_pct_max: {100 * errs_a[:, 2].max():.3f}")
+
+    upd = ChiselUpdater(model, cam, source)
+    upd.begin_step()
+    t0 = time.perf_counter()
+    for f in frames:
+        upd.process(f)
+    stream_s = time.perf_counter() - t0
+    print(f"streaming_update_fps: {args.frames / stream_s:.1f}")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(f"peak_rss_mib: {peak:.0f}")
+    print(f"update_fps: {args.frames / batch_s:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
