@@ -491,3 +491,48 @@ def test_scalar_variant_fallback_renders_depth_and_rgb(
         # Nearest-neighbour remap of a distorted camera: sub-pixel offsets, not exact.
         assert np.median(np.abs(d[both] - ref[both])) < 0.15
         assert seq.rgb(i)[seq.camera_mask].mean() > 20
+
+
+def test_end_to_end_with_real_phantom_generator(tmp_path: Path) -> None:
+    """`sim dataset` runs `python -m phantoms generate` (a real, coarse phantom) and renders it."""
+    out = tmp_path / "ds"
+    rc = main(
+        [
+            "dataset",
+            "--seeds",
+            "0",
+            "--bites",
+            "1",
+            "--out",
+            str(out),
+            "--frames",
+            "3",
+            "--preop-frames",
+            "3",
+            "--width",
+            "48",
+            "--height",
+            "40",
+            "--spp",
+            "1",
+            "--quiet",
+            "--phantom-args",
+            "--spacing-mm 1.0 --mucosa-mm 1.5 --mesh-edge-mm 1.0",
+        ]
+    )
+    assert rc == 0
+    ds = json.loads((out / "dataset.json").read_text())
+    assert [e["path"] for e in ds["sequences"]] == ["seed_0/preop", "seed_0/step_01"]
+    phantom = json.loads((out / "phantoms/seed_0/phantom.json").read_text())
+    caster = MeshRaycaster.from_trimesh(
+        load_mesh(out / "phantoms/seed_0" / phantom["steps"][1]["mesh"])
+    )
+    seq = Sequence(out / "seed_0/step_01")
+    for i in range(len(seq)):
+        d, ref = seq.depth_mm(i), caster.render_depth(seq.camera, seq.true_poses[i])
+        both = np.isfinite(d) & np.isfinite(ref)
+        assert both.mean() > 0.9
+        assert np.median(np.abs(d[both] - ref[both])) < 1e-3
+        # The camera looks at the target from the airway: it is in front, within 20 mm.
+        p = np.linalg.inv(seq.true_poses[i]) @ np.append(phantom["target"]["center_mm"], 1.0)
+        assert 0 < p[2] < 20.0
