@@ -120,6 +120,17 @@ class SurfaceDistance:
             return np.zeros(shape, np.float32)
         return self.scene.compute_distance(o3d.core.Tensor(p)).numpy().reshape(shape)
 
+    def first_hit(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Distance along each unit direction to the first surface hit, mm; inf on a miss.
+
+        origins_mm, directions : (N, 3) float. Returns (N,) float32.
+        """
+        rays = np.concatenate(
+            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
+        )
+        hit = self.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, dtype=np.float32)))
+        return hit["t_hit"].numpy()
+
     def signed_distance_grid(
         self, points_mm: np.ndarray, clip_mm: float, spacing_mm: float
     ) -> np.ndarray:

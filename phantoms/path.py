@@ -23,7 +23,7 @@ from phantoms.errors import AnatomyError
 
 VIEW_DISTANCE_MM = (8.0, 15.0)
 """Range of the viewpoint's distance from the target centre."""
-VIEW_MAX_ANGLE_DEG = 60.0
+VIEW_MAX_ANGLE_DEG = 70.0
 """Largest angle between (viewpoint - target) and the target normal."""
 
 
