@@ -230,10 +230,12 @@ def test_config_validation_and_round_trip() -> None:
         AugmentConfig(hflip=2.0)
 
 
-@pytest.mark.parametrize("hw", [(48, 64), (37, 53), (256, 320)])
-def test_predictor_shape_positive_finite(hw: tuple[int, int]) -> None:
+@pytest.mark.parametrize(
+    ("hw", "scale"), [((48, 64), 0.5), ((37, 53), 0.5), ((37, 53), 1.0), ((256, 320), 0.5)]
+)
+def test_predictor_shape_positive_finite(hw: tuple[int, int], scale: float) -> None:
     torch.manual_seed(0)
-    pred = DepthPredictor(DepthNet(DepthNetConfig())).eval()
+    pred = DepthPredictor(DepthNet(DepthNetConfig(input_scale=scale))).eval()
     rgb = torch.randint(0, 256, (2, *hw, 3), dtype=torch.uint8)
     with torch.inference_mode():
         out = pred(rgb)

@@ -34,6 +34,10 @@ class DepthNetConfig:
     """Channels of the encoder stages; stage ``k`` runs at 1/2**(k+1) of the input size."""
     blocks: tuple[int, ...] = (1, 1, 1, 2, 2)
     """Residual blocks after the strided convolution of each encoder stage."""
+    input_scale: float = 0.5
+    """The network sees the image resized by this factor (area filter); its depth is
+    upsampled back to the input size. 0.5 makes training and inference 4x cheaper; the
+    endoscopic surfaces are smooth enough that the lost detail costs little."""
     rgb_mean: tuple[float, float, float] = (0.5, 0.5, 0.5)
     """Per-channel mean subtracted from RGB scaled to [0, 1]."""
     rgb_std: tuple[float, float, float] = (0.25, 0.25, 0.25)
@@ -44,6 +48,7 @@ class DepthNetConfig:
         blocks = tuple(int(b) for b in self.blocks)
         object.__setattr__(self, "widths", widths)
         object.__setattr__(self, "blocks", blocks)
+        object.__setattr__(self, "input_scale", float(self.input_scale))
         object.__setattr__(self, "rgb_mean", tuple(float(m) for m in self.rgb_mean))
         object.__setattr__(self, "rgb_std", tuple(float(s) for s in self.rgb_std))
         if not 2 <= len(widths) <= 7:
@@ -54,6 +59,10 @@ class DepthNetConfig:
             raise InvalidInputError(
                 "DepthNetConfig.blocks",
                 f"need one non-negative count per stage ({len(widths)}), got {blocks}",
+            )
+        if not 0.1 <= self.input_scale <= 1.0:
+            raise InvalidInputError(
+                "DepthNetConfig.input_scale", f"must be in [0.1, 1], got {self.input_scale}"
             )
         if len(self.rgb_mean) != 3 or len(self.rgb_std) != 3 or min(self.rgb_std) <= 0:
             raise InvalidInputError(
@@ -67,7 +76,7 @@ class DepthNetConfig:
         return 2 ** len(self.widths)
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) for k, v in asdict(self).items()}
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "config") -> DepthNetConfig:
@@ -78,7 +87,7 @@ class DepthNetConfig:
                 source, f"unknown DepthNetConfig field(s) {sorted(unknown)}; known: {sorted(known)}"
             )
         try:
-            return cls(**{k: tuple(v) for k, v in d.items()})
+            return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
         except TypeError as exc:
             raise InvalidInputError(source, f"bad DepthNetConfig: {exc}") from None
 
@@ -106,7 +115,9 @@ class DepthNet(nn.Module):
     """Residual U-Net encoder-decoder from scratch (no pretrained backbone exists here).
 
     forward: (B, 3, H, W) float normalised RGB, H and W multiples of ``config.stride``
-    -> (B, 1, H/2, W/2) float log-depth (relative; ``exp`` gives depth).
+    -> (B, 1, H, W) float log-depth (relative; ``exp`` gives depth).
+    Encoder stage k runs at 1/2**(k+1) resolution; the decoder climbs back to 1/2 and a
+    light full-resolution level (a stem on the input) restores the image's own grid.
     """
 
     def __init__(self, config: DepthNetConfig | None = None) -> None:
@@ -128,12 +139,16 @@ class DepthNet(nn.Module):
                 for k in range(len(w) - 2, -1, -1)
             ]
         )
-        self.head = nn.Conv2d(w[0], 1, 3, 1, 1)
+        top = max(4, w[0] // 2)
+        self.stem = _conv_bn_relu(3, top)
+        self.top = _conv_bn_relu(w[0] + top, top)
+        self.head = nn.Conv2d(top, 1, 3, 1, 1)
         # Start near depth = e^2.5 ~ 12 mm, a typical endoscopic working distance.
         nn.init.zeros_(self.head.weight)
         nn.init.constant_(self.head.bias, 2.5)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        full = self.stem(x)
         skips: list[torch.Tensor] = []
         for stage in self.encoder:
             x = stage(x)
@@ -146,14 +161,18 @@ class DepthNet(nn.Module):
                 y, size=(skip.shape[2], skip.shape[3]), mode="bilinear", align_corners=False
             )
             y = block(torch.cat([y, skip], dim=1))
-        return self.head(y)
+        y = F.interpolate(
+            y, size=(full.shape[2], full.shape[3]), mode="bilinear", align_corners=False
+        )
+        return self.head(self.top(torch.cat([y, full], dim=1)))
 
 
 class DepthPredictor(nn.Module):
     """uint8 RGB in, positive relative depth out, at the input's own size.
 
     forward: rgb (B, H, W, 3) uint8 -> (B, H, W) float32 relative depth (> 0, finite).
-    Any H, W >= 2 work: the input is replicate-padded to the network stride and cropped back.
+    Any H, W >= 2 work: the input is resized by ``input_scale``, replicate-padded to the
+    network stride, and the depth is cropped and upsampled back to (H, W).
     This is the module that is exported (TorchScript) and run by the depth source.
     """
 
@@ -162,6 +181,7 @@ class DepthPredictor(nn.Module):
         self.net = net
         cfg = net.config
         self.stride = int(cfg.stride)
+        self.input_scale = float(cfg.input_scale)
         self.log_depth_clamp = float(LOG_DEPTH_CLAMP)
         self.register_buffer("mean", torch.tensor(cfg.rgb_mean).view(1, 3, 1, 1) * 255.0)
         self.register_buffer("std", torch.tensor(cfg.rgb_std).view(1, 3, 1, 1) * 255.0)
@@ -175,14 +195,22 @@ class DepthPredictor(nn.Module):
         w = rgb.shape[2]
         x = rgb.permute(0, 3, 1, 2).float()
         x = (x - self.mean) / self.std
-        pad_h = (self.stride - h % self.stride) % self.stride
-        pad_w = (self.stride - w % self.stride) % self.stride
+        if self.input_scale != 1.0:
+            sh = max(1, int(round(h * self.input_scale)))
+            sw = max(1, int(round(w * self.input_scale)))
+            x = F.interpolate(x, size=(sh, sw), mode="area")
+        else:
+            sh = h
+            sw = w
+        pad_h = (self.stride - sh % self.stride) % self.stride
+        pad_w = (self.stride - sw % self.stride) % self.stride
         if pad_h > 0 or pad_w > 0:
             x = F.pad(x, [0, pad_w, 0, pad_h], mode="replicate")
         x = x.contiguous(memory_format=torch.channels_last)
-        y = self.net(x)
-        y = F.interpolate(y, size=(x.shape[2], x.shape[3]), mode="bilinear", align_corners=False)
-        return y[:, :, :h, :w].clamp(-self.log_depth_clamp, self.log_depth_clamp)
+        y = self.net(x)[:, :, :sh, :sw]
+        if sh != h or sw != w:
+            y = F.interpolate(y, size=(h, w), mode="bilinear", align_corners=False)
+        return y.clamp(-self.log_depth_clamp, self.log_depth_clamp)
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
         return torch.exp(self.log_depth(rgb))[:, 0].contiguous()
