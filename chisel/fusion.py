@@ -209,6 +209,35 @@ def check_pose_in_model(model: TsdfModel, T_world_from_cam: np.ndarray, source: 
     return T
 
 
+_BOUNDS_CACHE: dict[tuple, tuple[float, np.ndarray]] = {}
+
+
+def _camera_bounds(camera: Camera) -> tuple[float, np.ndarray]:
+    """(max r^2 of the image's normalised rays, [x_min, x_max, y_min, y_max]); cached.
+
+    The bounds reach half a pixel beyond the border rays; with distortion they come from
+    the undistorted rays of every pixel, so they hold whatever the lens model.
+    """
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+    hit = _BOUNDS_CACHE.get(key)
+    if hit is None:
+        rays = camera.rays_cam()
+        r2_max = float(((rays[..., 0] ** 2 + rays[..., 1] ** 2).max()) * 1.02 + 1e-9)
+        pad_x, pad_y = 0.5 / camera.fx, 0.5 / camera.fy
+        xb = np.array(
+            [
+                rays[..., 0].min() - pad_x,
+                rays[..., 0].max() + pad_x,
+                rays[..., 1].min() - pad_y,
+                rays[..., 1].max() + pad_y,
+            ]
+        )
+        if len(_BOUNDS_CACHE) > 64:
+            _BOUNDS_CACHE.clear()
+        hit = _BOUNDS_CACHE[key] = (r2_max, xb)
+    return hit
+
+
 def integrate(
     model: TsdfModel,
     camera: Camera,
@@ -236,7 +265,8 @@ def integrate(
     T = check_rigid(T_world_from_cam, "T_world_from_cam")
     depth = np.asarray(depth_mm, dtype=np.float32)
     camera.check_image(depth, "depth_mm")
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0)).astype(np.float32)
+    depth = np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(depth, 0.0, out=depth)
     if pixel_weight is None:
         pix_w = np.ones(depth.shape, dtype=np.float32)
     else:
@@ -270,18 +300,7 @@ def integrate(
         reset_arr = np.zeros((1, 1, 1), dtype=np.uint8)
     # Voxel index -> camera frame in one affine map (rotation block scaled by the voxel).
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
-    rays = camera.rays_cam()
-    r2_max = float(((rays[..., 0] ** 2 + rays[..., 1] ** 2).max()) * 1.02 + 1e-9)
-    # Normalised-coordinate bounds of the image (half a pixel beyond the border rays).
-    pad_x, pad_y = 0.5 / camera.fx, 0.5 / camera.fy
-    xb = np.array(
-        [
-            rays[..., 0].min() - pad_x,
-            rays[..., 0].max() + pad_x,
-            rays[..., 1].min() - pad_y,
-            rays[..., 1].max() + pad_y,
-        ]
-    )
+    r2_max, xb = _camera_bounds(camera)
     n = _integrate_kernel(
         model.tsdf,
         model.weight,

@@ -304,6 +304,12 @@ def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
 
 
+def _matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_rotvec()
+
+
 @dataclass
 class SimilarityResult:
     """Outcome of :func:`icp_similarity`."""
@@ -339,8 +345,9 @@ def icp_similarity(
     source_mm : (N, 3) float64 estimate points in world mm placed with the tracked pose.
     center_mm : (3,) the tracked camera centre (the scale acts about it), mm.
     init : (4, 4) starting rigid correction ``T_model_from_est``.
-    prior : keep the corrected camera centre near ``init``'s (weight ``cfg.pose_prior``);
-        use it when ``init`` already predicts the pose well (a known hand-eye error).
+    prior : keep the corrected camera centre and orientation near ``init``'s (weight
+        ``cfg.pose_prior``; rotation measured in mm at the points' median distance); use
+        it when ``init`` already predicts the pose well (a known hand-eye error).
     The corrected points are ``R * scale * (p - c) + c'`` with ``c' = init(c)`` refined.
     """
     p = np.asarray(source_mm, dtype=np.float64)
@@ -351,8 +358,10 @@ def icp_similarity(
     R = init[:3, :3].copy()
     c_new = init[:3, :3] @ c + init[:3, 3]
     c_prior = c_new.copy()
+    R_prior = R.copy()
     sigma = 1.0
     rel = p - c
+    rho2 = float(np.median(np.einsum("ij,ij->i", rel, rel)))
     it = 0
     for dist in cfg.icp_max_dist_mm:
         k = max(cfg.tukey_k_mm, dist / 2.0)
@@ -376,6 +385,10 @@ def icp_similarity(
             lam = cfg.pose_prior * float(w.sum()) if prior else 0.0
             A[3:6, 3:6] += lam * np.eye(3)
             b[3:6] += lam * (c_prior - c_new)
+            # Rotation prior, in mm at the points' typical distance from the camera.
+            lam_r = lam * rho2
+            A[0:3, 0:3] += lam_r * np.eye(3)
+            b[0:3] += lam_r * _matrix_to_rotvec(R_prior @ R.T)
             A += np.eye(len(A)) * (1e-9 * np.trace(A) + 1e-12)
             try:
                 x = np.linalg.solve(A, b)

@@ -95,9 +95,9 @@ class UpdateConfig:
     sequence_ransac: bool = True
     """Batch mode: run RANSAC + ICP on the whole step's point cloud before per-frame ICP."""
     solve_scale: Literal["auto", "always", "never"] = "auto"
-    """Refine the depth scale jointly with the pose in per-frame ICP: "auto" = unless the
-    depth source declares metric depth (``is_metric``). The initial robust median of
-    ratios is always applied."""
+    """Solve the depth's scale (robust median of ratios to the render, then jointly with
+    the pose in per-frame ICP): "auto" = unless the depth source declares metric depth
+    (``is_metric``), whose scale is 1."""
     max_points: int = 1500
     """About this many pixels (a regular stride) per frame in per-frame registration."""
     sequence_points: int = 500
@@ -427,7 +427,8 @@ class ChiselUpdater:
     ) -> tuple[np.ndarray, float, RegistrationResult | None]:
         """M' (after imputation), the scale, and the registration (None when off)."""
         cfg = self.cfg
-        s0, _ = solve_scale(R, E, cfg.change.threshold_mm)
+        scale_free = _scale_free(cfg, self.depth_source)
+        s0 = solve_scale(R, E, cfg.change.threshold_mm)[0] if scale_free else 1.0
         if not cfg.register:
             return impute((s0 * E).astype(np.float32), R), s0, None
         rcfg = cfg.registration
@@ -436,9 +437,6 @@ class ChiselUpdater:
         src = _points(self.camera, s0 * E, T, cfg.max_points)  # placed with the tracked pose
         center = T[:3, 3]
         index = self.renderer.index
-        scale_free = cfg.solve_scale == "always" or (
-            cfg.solve_scale == "auto" and not is_metric(self.depth_source)
-        )
         sim = icp_similarity(src, center, index, C, rcfg, estimate_scale=scale_free, prior=prior)
         res = check_result(
             sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg
@@ -469,6 +467,11 @@ class ChiselUpdater:
         T_tracked_from_registered = invert_rigid(T) @ res.T_model_from_est @ T
         m_prime = impute(warp_depth(s * E, self.camera, T_tracked_from_registered), R)
         return m_prime, s, res
+
+
+def _scale_free(cfg: UpdateConfig, source: object) -> bool:
+    """True when the depth's scale must be solved (not declared metric, or forced)."""
+    return cfg.solve_scale == "always" or (cfg.solve_scale == "auto" and not is_metric(source))
 
 
 def _with_step(model: TsdfModel, step: int) -> TsdfModel:
@@ -545,7 +548,9 @@ def update_step(
         renders = [renderer.render(camera, T) for T in poses]
         C = np.eye(4)
         if cfg.sequence_ransac:
-            C, seq_reg = _sequence_registration(renderer, camera, poses, estimates, renders, cfg)
+            C, seq_reg = _sequence_registration(
+                renderer, camera, poses, estimates, renders, cfg, _scale_free(cfg, depth_source)
+            )
         F, he = _hand_eye(
             renderer, camera, poses, estimates, renders, C, cfg, is_metric(depth_source)
         )
@@ -579,7 +584,7 @@ def _hand_eye(
     Fs = []
     for T, E, R in zip(poses, estimates, renders, strict=True):
         try:
-            s0, _ = solve_scale(R, E, cfg.change.threshold_mm)
+            s0 = solve_scale(R, E, cfg.change.threshold_mm)[0] if scale_free else 1.0
         except EmptyResultError:
             continue
         src = _points(camera, s0 * E, T, cfg.sequence_points)
@@ -604,12 +609,13 @@ def _sequence_registration(
     estimates: list[np.ndarray],
     renders: list[np.ndarray],
     cfg: UpdateConfig,
+    scale_free: bool,
 ) -> tuple[np.ndarray, dict]:
     """RANSAC + ICP of the whole step's scaled estimates onto the model surface."""
     pts = []
     for T, E, R in zip(poses, estimates, renders, strict=True):
         try:
-            s, _ = solve_scale(R, E, cfg.change.threshold_mm)
+            s = solve_scale(R, E, cfg.change.threshold_mm)[0] if scale_free else 1.0
         except EmptyResultError:
             continue
         pts.append(_points(camera, s * E, T, cfg.sequence_points))
