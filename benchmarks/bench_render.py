@@ -13,6 +13,7 @@ triangles); pass a generated phantom to measure on real anatomy. Frames cycle th
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import sys
 import tempfile
@@ -30,6 +31,8 @@ from sim.pipeline import _texture_box, path_target
 from sim.render import MeshRenderer
 from sim.synthetic import write_toy_phantom
 
+CORES = len(os.sched_getaffinity(0))
+
 
 def rss_mb() -> float:
     """Current resident set size in MiB (Linux /proc)."""
@@ -39,7 +42,9 @@ def rss_mb() -> float:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--phantom", type=Path, help="phantom folder (default: the toy phantom)")
     ap.add_argument("--frames", type=int, default=1000, help="RGB-D frames for speed and memory")
     ap.add_argument("--depth-frames", type=int, default=1000, help="depth-only frames")
@@ -60,16 +65,21 @@ def main() -> int:
     print(f"variant: {depth_r.variant}")
     depth_r.render_depth(poses[: args.batch])  # compile
     n = 0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     while n < args.depth_frames:
         idx = np.arange(n, n + args.batch) % len(poses)
         depth_r.render_depth(poses[idx])
         n += args.batch
     depth_fps = n / (time.perf_counter() - t0)
+    depth_cpu_ms = 1000 * (time.process_time() - c0) / n
     t0 = time.perf_counter()
     for i in range(100):
         depth_r.render_depth(poses[i % len(poses)])
     print(f"depth_fps_single_frame_calls: {100 / (time.perf_counter() - t0):.1f}")
+    # CPU time per frame is what the frame costs however busy the shared machine is; with
+    # both cores free the wall time would be about cpu_ms / cores (an estimate, not a run).
+    print(f"depth_cpu_ms_per_frame: {depth_cpu_ms:.2f}")
+    print(f"depth_fps_est_if_cores_free: {1000 * CORES / depth_cpu_ms:.1f}")
     print(f"depth_fps: {depth_fps:.1f}")
     del depth_r
 
@@ -79,12 +89,13 @@ def main() -> int:
         r.render(poses[i], index=i)
     rss0 = rss_mb()
     t_rgb = 0.0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for i in range(args.frames):
         r.render(poses[i % len(poses)], index=i)
         if i == 99:
             rss100 = rss_mb()
     elapsed = time.perf_counter() - t0
+    rgbd_cpu_ms = 1000 * (time.process_time() - c0) / args.frames
     t1 = time.perf_counter()
     for i in range(20):
         r.render_radiance(poses[i], seed=i)
@@ -94,6 +105,9 @@ def main() -> int:
     print(f"rss_start_mb: {rss0:.1f}")
     print(f"rss_growth_frames_100_to_{args.frames}_mb: {rss1 - rss100:.1f}")
     print(f"rss_growth_mb: {rss1 - rss0:.1f}")
+    print(f"rgbd_cpu_ms_per_frame: {rgbd_cpu_ms:.1f}")
+    print(f"rgbd_fps_est_if_cores_free: {1000 * CORES / rgbd_cpu_ms:.1f}")
+    print(f"load_average_1min: {os.getloadavg()[0]:.1f}")
     print(f"rgbd_fps: {args.frames / elapsed:.1f}")
     return 0
 
