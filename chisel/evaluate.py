@@ -788,7 +788,9 @@ def load_mesh(path: str | Path, source: str) -> trimesh.Trimesh:
 def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -> np.ndarray:
     """Read predicted change masks: an ``.npz`` with key ``masks`` or a folder of PNGs.
 
-    npz: ``masks`` (N, H, W) bool or uint8 (nonzero = changed), read without pickle.
+    npz: ``masks`` (N, H, W) bool or uint8 (nonzero = changed), read without pickle; with
+    an optional ``frame_index`` (N,) int (as ``chisel update --masks`` writes), the masks are
+    placed at those frames of the sequence and the other frames count as unchanged.
     Folder: ``000000.png`` ... one uint8 PNG per frame, 255 = changed.
     Returns (N, H, W) bool, checked against ``n_frames`` and ``shape`` = (H, W).
     """
@@ -817,6 +819,19 @@ def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -
             if "masks" not in z.files:
                 raise InvalidInputError(path, f"expected key 'masks', found {z.files}")
             arr = _check_masks(z["masks"], str(path))
+            if "frame_index" in z.files:
+                # `chisel update --masks` stores one mask per frame it considered, with the
+                # frame's index; frames it did not consider count as "no change".
+                idx = np.asarray(z["frame_index"], dtype=np.int64)
+                if idx.shape != (len(arr),) or (
+                    idx.size and (idx.min() < 0 or idx.max() >= n_frames)
+                ):
+                    raise InvalidInputError(
+                        path, f"frame_index must hold {len(arr)} indices in 0..{n_frames - 1}"
+                    )
+                full = np.zeros((n_frames, *arr.shape[1:]), dtype=bool)
+                full[idx] = arr
+                arr = full
     else:
         raise InvalidInputError(path, "change masks are missing (expected an .npz or a folder)")
     if arr.shape != (n_frames, *shape):

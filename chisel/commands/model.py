@@ -278,7 +278,7 @@ def _cmd_update(args: argparse.Namespace) -> int:
         )
         used = np.array([f.used for f in report.frames], dtype=bool)
         with atomic_path(args.masks, suffix=".npz") as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, frame_index=idx, mask=masks, used=used)
+            np.savez_compressed(fh, frame_index=idx, masks=masks, used=used)
     atomic_write_text(out_report, json.dumps(rep, indent=2) + "\n")
     new_model.save(args.out)
     log.info("step %d: %d/%d frames used -> %s", report.step, len(report.frames_used), n, args.out)
