@@ -1,6 +1,6 @@
 """``python -m sim``: render phantoms into sequence folders, export, build training sets.
 
-Subcommands: ``render``, ``export-nerfstudio``, ``dataset``. Errors the user can fix
+Subcommands: ``render``, ``export-nerfstudio``, ``dataset``, ``retrack``. Errors the user can fix
 (bad phantom, mesh, path, config) print one line naming the file/argument and exit 1.
 """
 
@@ -124,6 +124,18 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_retrack(args: argparse.Namespace) -> int:
+    from sim.config import TrackingConfig  # noqa: PLC0415
+    from sim.retrack import retrack_sequence  # noqa: PLC0415
+
+    cfg = TrackingConfig(
+        args.jitter_mm, args.jitter_deg, args.handeye_mm, args.handeye_deg, args.latency_frames
+    )
+    retrack_sequence(args.sequence, args.out, cfg, args.seed)
+    logging.getLogger("sim").info("re-tracked %s -> %s", args.sequence, args.out)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m sim",
@@ -193,6 +205,30 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--resume", action="store_true", help="keep seeds already rendered in DIR")
     _add_render_options(d)
     d.set_defaults(func=_cmd_dataset)
+
+    t = sub.add_parser(
+        "retrack",
+        help="same frames, new tracked poses with another tracking-noise model",
+        description=(
+            "Copy a synthetic sequence (it needs poses_true.txt) and redraw its tracked poses: "
+            "T_tracked = T_true[i - latency] @ E_handeye @ J_i (camera frame), E a constant "
+            "hand-eye error of exactly --handeye-mm / --handeye-deg, J_i per-frame jitter with "
+            "std --jitter-mm / --jitter-deg per axis. All zero = exact poses."
+        ),
+    )
+    t.add_argument("--sequence", type=Path, required=True, help="input sequence folder")
+    t.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
+    t.add_argument("--jitter-mm", type=float, default=0.0, help="jitter std per axis, mm (0)")
+    t.add_argument("--jitter-deg", type=float, default=0.0, help="jitter std per axis, degrees (0)")
+    t.add_argument(
+        "--handeye-mm", type=float, default=0.0, help="hand-eye translation error, mm (0)"
+    )
+    t.add_argument(
+        "--handeye-deg", type=float, default=0.0, help="hand-eye rotation error, deg (0)"
+    )
+    t.add_argument("--latency-frames", type=int, default=0, help="tracking latency in frames (0)")
+    t.add_argument("--seed", type=int, default=0, help="seed of the noise draws (0)")
+    t.set_defaults(func=_cmd_retrack)
     return parser
 
 

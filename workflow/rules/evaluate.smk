@@ -7,7 +7,7 @@ def method_mesh(wc, method):
 
 def eval_methods(wc):
     if int(wc.step) == 0:
-        return ["no_update"]  # the preoperative model before any update (the paper's "preop" row)
+        return ["updated"]  # the paper's "preop" row: the preoperative model, before any update
     methods = variant_methods(wc.variant)
     return (["no_update"] if wc.variant == "base" and "no_update" in config["methods"] else []) + methods
 

@@ -33,8 +33,13 @@ rule retrack:
         f"{RESULTS}/logs/seed_{{seed}}/retrack_{{noise}}_step_{{step}}.log",
     wildcard_constraints:
         noise=r"[0-9.]+",
+    params:
+        # Noise level X: a constant hand-eye error of X mm and X degrees plus per-frame
+        # jitter of X/4 mm and X/4 degrees per axis; 0 = exact poses.
+        jitter=lambda wc: float(wc.noise) / 4.0,
     threads: 1
     shell:
         "{PY} -m sim retrack --sequence $(dirname {input.index})/step_{wildcards.step} "
-        "--pose-noise-mm {wildcards.noise} --pose-noise-deg {wildcards.noise} "
+        "--handeye-mm {wildcards.noise} --handeye-deg {wildcards.noise} "
+        "--jitter-mm {params.jitter} --jitter-deg {params.jitter} "
         "--seed {wildcards.seed} --out {output.seq} > {log} 2>&1"
