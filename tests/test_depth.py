@@ -36,7 +36,7 @@ from chisel.depth import (
     split_by_group,
     train,
 )
-from chisel.depth.data import augment
+from chisel.depth.data import augment, downsample_targets
 from chisel.depth.train import resolve_device
 from chisel.errors import EmptyResultError, FormatVersionError, InvalidInputError
 from chisel.geometry import Camera, look_at
@@ -342,6 +342,16 @@ def test_load_frames_masks_and_augment(dataset: Path) -> None:
     b = augment(fs.rgb, fs.depth_mm, fs.valid, AugmentConfig(), torch.Generator().manual_seed(4))
     assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
     assert not torch.equal(a[0], fs.rgb.float())
+
+
+def test_downsample_targets_hand_values() -> None:
+    depth = torch.tensor([[[1.0, 3.0, 5.0, 5.0], [1.0, 3.0, 7.0, 9.0]]])
+    valid = torch.tensor([[[True, True, True, True], [True, True, False, True]]])
+    d, v = downsample_targets(depth, valid, (1, 2))
+    assert v.tolist() == [[[True, False]]]  # a block with an invalid pixel is invalid
+    assert d[0, 0, 0].item() == pytest.approx(2.0)
+    same = downsample_targets(depth, valid, (2, 4))
+    assert same[0] is depth and same[1] is valid
 
 
 # --------------------------------------------------------------------------- training

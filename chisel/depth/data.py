@@ -226,6 +226,26 @@ def load_frames(
     )
 
 
+def downsample_targets(
+    depth_mm: torch.Tensor, valid: torch.Tensor, size: tuple[int, int]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth and validity on a coarser grid (the network's), area-averaged.
+
+    depth_mm : (N, H, W) float mm. valid : (N, H, W) bool. size : (height, width).
+    A coarse pixel is valid only if every fine pixel it covers is (no averaging across a
+    mask or depth edge into nothing); its depth is the mean of those pixels.
+    Returns (N, h, w) float32 depth (1.0 where invalid) and (N, h, w) bool.
+    """
+    if tuple(depth_mm.shape[1:]) == tuple(size):
+        return depth_mm, valid
+    v = valid.float()[:, None]
+    d = torch.where(valid, depth_mm, torch.zeros_like(depth_mm)).float()[:, None]
+    v_low = torch.nn.functional.interpolate(v, size=size, mode="area")[:, 0]
+    d_low = torch.nn.functional.interpolate(d, size=size, mode="area")[:, 0]
+    ok = v_low > 1.0 - 1e-4
+    return torch.where(ok, d_low / v_low.clamp(min=1e-6), torch.ones_like(d_low)), ok
+
+
 @dataclass(frozen=True)
 class AugmentConfig:
     """Seeded photometric and flip augmentation applied per training sample."""

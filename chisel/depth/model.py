@@ -186,29 +186,32 @@ class DepthPredictor(nn.Module):
         self.register_buffer("mean", torch.tensor(cfg.rgb_mean).view(1, 3, 1, 1) * 255.0)
         self.register_buffer("std", torch.tensor(cfg.rgb_std).view(1, 3, 1, 1) * 255.0)
 
-    def log_depth(self, rgb: torch.Tensor) -> torch.Tensor:
+    def net_size(self, h: int, w: int) -> tuple[int, int]:
+        """(height, width) the network works at for an (h, w) input."""
+        if self.input_scale == 1.0:
+            return h, w
+        return max(1, int(round(h * self.input_scale))), max(1, int(round(w * self.input_scale)))
+
+    def log_depth(self, rgb: torch.Tensor, full_res: bool = True) -> torch.Tensor:
         """rgb (B, H, W, 3) uint8, or float in [0, 255] (augmented training input)
-        -> (B, 1, H, W) float32 log relative depth."""
+        -> (B, 1, H, W) float32 log relative depth; with ``full_res=False`` at the
+        network's own size :meth:`net_size` (training computes its loss there)."""
         if rgb.dim() != 4 or rgb.shape[3] != 3:
             raise ValueError("DepthPredictor expects (B, H, W, 3) RGB")
         h = rgb.shape[1]
         w = rgb.shape[2]
         x = rgb.permute(0, 3, 1, 2).float()
         x = (x - self.mean) / self.std
-        if self.input_scale != 1.0:
-            sh = max(1, int(round(h * self.input_scale)))
-            sw = max(1, int(round(w * self.input_scale)))
+        sh, sw = self.net_size(h, w)
+        if sh != h or sw != w:
             x = F.interpolate(x, size=(sh, sw), mode="area")
-        else:
-            sh = h
-            sw = w
         pad_h = (self.stride - sh % self.stride) % self.stride
         pad_w = (self.stride - sw % self.stride) % self.stride
         if pad_h > 0 or pad_w > 0:
             x = F.pad(x, [0, pad_w, 0, pad_h], mode="replicate")
         x = x.contiguous(memory_format=torch.channels_last)
         y = self.net(x)[:, :, :sh, :sw]
-        if sh != h or sw != w:
+        if full_res and (sh != h or sw != w):
             y = F.interpolate(y, size=(h, w), mode="bilinear", align_corners=False)
         return y.clamp(-self.log_depth_clamp, self.log_depth_clamp)
 

@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from chisel.depth.data import AugmentConfig, FrameSet, augment
+from chisel.depth.data import AugmentConfig, FrameSet, augment, downsample_targets
 from chisel.depth.losses import depth_loss
 from chisel.depth.metrics import DepthMetrics, MetricAccumulator
 from chisel.depth.model import DepthNet, DepthNetConfig, DepthPredictor
@@ -213,6 +213,10 @@ def train(
             sched = torch.optim.lr_scheduler.LambdaLR(
                 opt, lambda s: 0.5 * (1.0 + math.cos(math.pi * min(s, total_steps) / total_steps))
             )
+        # The loss is computed on the network's own (coarser) grid: cheaper, and the
+        # bilinear upsampling to full size adds nothing to learn.
+        net_hw = predictor.net_size(int(frames.rgb.shape[1]), int(frames.rgb.shape[2]))
+        depth_t, valid_t = downsample_targets(frames.depth_mm, frames.valid, net_hw)
         gen = torch.Generator().manual_seed(cfg.seed)
         history: list[dict[str, float]] = []
         best: tuple[float, int, dict[str, torch.Tensor]] | None = None
@@ -225,11 +229,11 @@ def train(
             sums = {"loss": 0.0, "si": 0.0, "grad": 0.0}
             for s in range(steps_per_epoch):
                 idx = perm[s * bs : (s + 1) * bs]
-                rgb, depth, valid = frames.rgb[idx], frames.depth_mm[idx], frames.valid[idx]
+                rgb, depth, valid = frames.rgb[idx], depth_t[idx], valid_t[idx]
                 if cfg.augment is not None:
                     rgb, depth, valid = augment(rgb, depth, valid, cfg.augment, gen)
                 rgb, depth, valid = rgb.to(device), depth.to(device), valid.to(device)
-                log_pred = predictor.log_depth(rgb)[:, 0]
+                log_pred = predictor.log_depth(rgb, full_res=False)[:, 0]
                 loss, parts = depth_loss(
                     log_pred, depth, valid, cfg.si_lambda, cfg.grad_weight, cfg.grad_scales
                 )
