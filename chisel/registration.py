@@ -35,7 +35,7 @@ class RegistrationConfig:
     """Correspondence distances of the coarse-to-fine ICP passes, mm."""
     tukey_k_mm: float = 0.5
     """Tukey kernel width of the point-to-plane ICP, mm: residuals beyond it count 0."""
-    icp_max_iter: int = 15
+    icp_max_iter: int = 10
     """ICP iterations per pass (at most)."""
     fitness_dist_mm: float = 1.5
     """Inlier distance used to report fitness (fraction of estimate points near the model)."""
@@ -283,9 +283,21 @@ class SurfaceIndex:
     """Model surface points with normals and a k-d tree, built once per step.
 
     points_mm : (N, 3) float64 world mm (mesh vertices); normals : (N, 3) unit.
+    grid : optional ``(origin_mm (3,), voxel_mm, shape (3,))`` of a voxel grid over the
+    surface. With it, :meth:`query` memoises the nearest vertex of each voxel centre the
+    first time a point falls in that voxel, so ICP iterations (and later frames) cost an
+    array lookup instead of a tree search. The answer is the vertex nearest to the
+    voxel's centre (at most half a voxel diagonal from the exact nearest neighbour),
+    which point-to-plane residuals tolerate.
     """
 
-    def __init__(self, points_mm: np.ndarray, normals: np.ndarray) -> None:
+    def __init__(
+        self,
+        points_mm: np.ndarray,
+        normals: np.ndarray,
+        grid: tuple[np.ndarray, float, tuple[int, int, int]] | None = None,
+        max_dist_mm: float = 4.0,
+    ) -> None:
         self.points = np.asarray(points_mm, dtype=np.float64)
         self.normals = np.asarray(normals, dtype=np.float64)
         if len(self.points) < 10 or self.normals.shape != self.points.shape:
@@ -293,6 +305,48 @@ class SurfaceIndex:
                 "surface", f"need >= 10 points with normals, got {self.points.shape}"
             )
         self.tree = cKDTree(self.points)
+        self.max_dist_mm = float(max_dist_mm)
+        self._grid = None
+        if grid is not None:
+            origin, voxel, shape = grid
+            self._grid = (
+                np.asarray(origin, np.float64),
+                float(voxel),
+                tuple(int(x) for x in shape),
+            )
+            self._cache = np.full(int(np.prod(shape)), -2, dtype=np.int32)  # -2 = not looked up
+
+    def query(self, points_mm: np.ndarray, dist_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest surface vertex within ``dist_mm``: (distance (N,), index (N,)).
+
+        Misses have distance inf and index ``len(points)`` (as scipy's cKDTree).
+        """
+        y = np.asarray(points_mm, dtype=np.float64)
+        n = len(self.points)
+        if self._grid is None or dist_mm > self.max_dist_mm:
+            return self.tree.query(y, distance_upper_bound=dist_mm)
+        origin, voxel, shape = self._grid
+        ijk = np.rint((y - origin) / voxel).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < np.array(shape)), axis=1)
+        flat = np.ravel_multi_index(ijk[inside].T, shape)
+        cur = self._cache[flat]
+        unknown = cur == -2
+        if unknown.any():
+            u = np.unique(flat[unknown])
+            centres = np.stack(np.unravel_index(u, shape), axis=1) * voxel + origin
+            reach = self.max_dist_mm + voxel
+            _, nn = self.tree.query(centres, distance_upper_bound=reach)
+            self._cache[u] = np.where(nn >= n, -1, nn).astype(np.int32)
+            cur = self._cache[flat]
+        idx = np.full(len(y), n, dtype=np.int64)
+        idx[inside] = np.where(cur >= 0, cur, n)
+        d = np.full(len(y), np.inf)
+        hit = idx < n
+        d[hit] = np.linalg.norm(y[hit] - self.points[idx[hit]], axis=1)
+        miss = d > dist_mm
+        d[miss] = np.inf
+        idx[miss] = n
+        return d, idx
 
 
 def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
@@ -305,9 +359,11 @@ def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
 
 
 def _matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_rotvec()
+    """Rotation vector of a (3, 3) rotation (small-angle safe; angles well below 180 deg)."""
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    a = float(np.arccos(c))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return v * (0.5 if a < 1e-8 else a / (2.0 * np.sin(a)))
 
 
 @dataclass
@@ -363,13 +419,17 @@ def icp_similarity(
     rel = p - c
     rho2 = float(np.median(np.einsum("ij,ij->i", rel, rel)))
     it = 0
-    for dist in cfg.icp_max_dist_mm:
+    # With a prior and a known scale the start is already close: skip the coarsest pass.
+    # (A scale from the render at the tracked pose can be off by tens of % in a tube.)
+    skip = prior and not estimate_scale and len(cfg.icp_max_dist_mm) > 1
+    dists = cfg.icp_max_dist_mm[1:] if skip else cfg.icp_max_dist_mm
+    for dist in dists:
         k = max(cfg.tukey_k_mm, dist / 2.0)
         for _ in range(cfg.icp_max_iter):
             it += 1
             y_rel = sigma * rel @ R.T
             y = y_rel + c_new
-            d, idx = surface.tree.query(y, distance_upper_bound=dist)
+            d, idx = surface.query(y, dist)
             ok = np.isfinite(d)
             if ok.sum() < 10:
                 break
@@ -385,10 +445,11 @@ def icp_similarity(
             lam = cfg.pose_prior * float(w.sum()) if prior else 0.0
             A[3:6, 3:6] += lam * np.eye(3)
             b[3:6] += lam * (c_prior - c_new)
-            # Rotation prior, in mm at the points' typical distance from the camera.
-            lam_r = lam * rho2
-            A[0:3, 0:3] += lam_r * np.eye(3)
-            b[0:3] += lam_r * _matrix_to_rotvec(R_prior @ R.T)
+            if prior:
+                # Rotation prior, in mm at the points' typical distance from the camera.
+                lam_r = lam * rho2
+                A[0:3, 0:3] += lam_r * np.eye(3)
+                b[0:3] += lam_r * _matrix_to_rotvec(R_prior @ R.T)
             A += np.eye(len(A)) * (1e-9 * np.trace(A) + 1e-12)
             try:
                 x = np.linalg.solve(A, b)
@@ -398,17 +459,18 @@ def icp_similarity(
             c_new = c_new + x[3:6]
             if estimate_scale:
                 sigma *= float(np.exp(x[6]))
+            # Converged: rotation < 2e-5 rad, shift < 1e-3 mm, scale < 2e-5.
             if (
-                np.linalg.norm(x[:3]) < 1e-6
-                and np.linalg.norm(x[3:6]) < 1e-5
-                and (not estimate_scale or abs(x[6]) < 1e-6)
+                np.abs(x[:3]).max() < 2e-5
+                and np.abs(x[3:6]).max() < 1e-3
+                and (not estimate_scale or abs(x[6]) < 2e-5)
             ):
                 break
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = c_new - R @ c
     y = sigma * rel @ R.T + c_new
-    d, idx = surface.tree.query(y, distance_upper_bound=cfg.fitness_dist_mm)
+    d, idx = surface.query(y, cfg.fitness_dist_mm)
     ok = np.isfinite(d)
     fitness = float(ok.mean())
     if ok.any():

@@ -114,6 +114,7 @@ class ModelRenderer:
 
     def __init__(self, model: TsdfModel) -> None:
         self.mesh: trimesh.Trimesh = extract_mesh(model, with_color=False)
+        self._grid = (model.origin_mm, model.voxel_size_mm, model.shape)
         self.raycaster = MeshRaycaster(self.mesh.vertices, self.mesh.faces)
         self._normals = np.asarray(self.mesh.vertex_normals)
         self._index: SurfaceIndex | None = None
@@ -122,7 +123,7 @@ class ModelRenderer:
     def index(self) -> SurfaceIndex:
         """k-d tree of the surface's vertices with normals (registration target), lazily built."""
         if self._index is None:
-            self._index = SurfaceIndex(self.mesh.vertices, self._normals)
+            self._index = SurfaceIndex(self.mesh.vertices, self._normals, grid=self._grid)
         return self._index
 
     def render(self, camera: Camera, T_world_from_cam: np.ndarray) -> np.ndarray:
