@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -32,16 +33,21 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-import trimesh
+# numba's default "omp" threading layer spin-waits and collapses (5-10x slower) when the
+# CPU is oversubscribed, as on a shared 2-core machine; "workqueue" degrades gracefully.
+# Set NUMBA_THREADING_LAYER yourself to measure another layer.
+os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
-from chisel.depth_source import CallableDepth
-from chisel.fusion import integrate
-from chisel.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
-from chisel.model import TsdfModel
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame
-from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, preop_bounds, update_step
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+
+from chisel.depth_source import CallableDepth  # noqa: E402
+from chisel.fusion import integrate  # noqa: E402
+from chisel.geometry import Camera, invert_rigid, look_at, rotation_angle_deg  # noqa: E402
+from chisel.model import TsdfModel  # noqa: E402
+from chisel.raycast import MeshRaycaster  # noqa: E402
+from chisel.sequence import Frame  # noqa: E402
+from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, preop_bounds, update_step  # noqa: E402
 
 
 def _pose_error(shift_mm: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
@@ -137,7 +143,9 @@ def bench_fusion(model0: TsdfModel, cam: Camera, poses: np.ndarray, depths: list
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--scene", choices=("phantom", "room"), default="phantom")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--width", type=int, default=320)
@@ -151,7 +159,10 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         scene = phantom_scene(args.seed, Path(tmp)) if args.scene == "phantom" else room_scene()
     cam = Camera.from_fov(args.width, args.height, 80.0)
+    import numba
+
     print(f"scene: {scene['name']}")
+    print(f"cpu_threads: {numba.get_num_threads()}")
     print(f"image: {args.width}x{args.height}")
 
     # --- preoperative fusion, ours vs Open3D on the same depth maps
@@ -163,6 +174,7 @@ def main() -> int:
     model0 = TsdfModel.empty(lo, hi, cfg.voxel_size_mm, cfg.trunc_mm)
     integrate(model0.copy(), cam, pre[0], depths[0])  # JIT warm-up
     ours, o3d_t = bench_fusion(model0, cam, pre, depths, args.repeats)
+    print(f"numba_threading_layer: {numba.threading_layer()}")
     print(f"model_voxels: {'x'.join(map(str, model0.shape))}")
     print(f"fusion_ms_per_frame: {ours * 1000:.2f}")
     print(f"open3d_fusion_ms_per_frame: {o3d_t * 1000:.2f}")
@@ -177,7 +189,12 @@ def main() -> int:
     tracked = np.stack([T @ E @ _pose_error(0.2, 0.2, rng) for T in true])
     rc_step = MeshRaycaster.from_trimesh(scene["step"])
     frames = [
-        Frame(i, tracked[i], depth_mm=rc_step.render_depth(cam, true[i]), T_world_from_cam_true=true[i])
+        Frame(
+            i,
+            tracked[i],
+            depth_mm=rc_step.render_depth(cam, true[i]),
+            T_world_from_cam_true=true[i],
+        )
         for i in range(args.frames)
     ]
     k = 0.0371  # unknown monocular scale

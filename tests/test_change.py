@@ -106,3 +106,25 @@ def test_change_config_checks() -> None:
         ChangeConfig(min_area_px=-1)
     with pytest.raises(InvalidInputError, match="shape"):
         change_mask(np.zeros((3, 3), np.float32), np.zeros((3, 4), np.float32), ChangeConfig())
+
+
+def test_surface_index_lookup_matches_tree() -> None:
+    from chisel.registration import SurfaceIndex
+
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(4000, 3))
+    pts = 10.0 * pts / np.linalg.norm(pts, axis=1, keepdims=True)  # a sphere of 10 mm
+    grid = (np.array([-12.0, -12.0, -12.0]), 0.5, (49, 49, 49))
+    fast = SurfaceIndex(pts, pts / 10.0, grid=grid)
+    exact = SurfaceIndex(pts, pts / 10.0)
+    q = pts[:500] * rng.uniform(0.85, 1.15, (500, 1))
+    for _ in range(2):  # the second call is served from the memo
+        d_fast, i_fast = fast.query(q, 1.5)
+        d_tree, _ = exact.query(q, 1.5)
+        hit = np.isfinite(d_fast)
+        assert hit.mean() > 0.95 and np.all(np.isfinite(d_tree[hit]))
+        # Nearest to the voxel centre, not to the point: within a voxel diagonal.
+        assert np.all(d_fast[hit] - d_tree[hit] < 0.5 * np.sqrt(3))
+        assert np.all(i_fast[~hit] == len(pts))
+    far = fast.query(np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0]]), 1.5)
+    assert np.all(np.isinf(far[0]))
