@@ -3,7 +3,9 @@
 Global: FPFH features + RANSAC (``registration_ransac_based_on_feature_matching``), as
 in the paper, because changed (removed) tissue must not pull the alignment; then ICP.
 Refinement: point-to-plane ICP with a Tukey robust kernel, coarse to fine correspondence
-distances, so points on removed tissue (several mm deeper than the model) are rejected.
+distances, so points on removed tissue (several mm deeper than the model) are rejected:
+Open3D's ICP after RANSAC (:func:`register_global`), and per frame
+:func:`icp_similarity`, which also solves the monocular depth scale.
 
 All transforms returned are ``T_model_from_est``: they map the estimate's world points
 (placed with the tracked camera pose) onto the model (world = CT frame). For a camera
@@ -106,23 +108,6 @@ def make_cloud(points_mm: np.ndarray, normals: np.ndarray | None = None) -> o3d.
     if normals is not None:
         pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
     return pcd
-
-
-def organized_normals(points: np.ndarray) -> np.ndarray:
-    """Normals of an organised (H, W, 3) point map by central differences; NaN where undefined.
-
-    Oriented towards the camera (negative z in the camera frame is not assumed: the sign
-    only matters for point-to-plane ICP up to orientation, which is sign-free).
-    """
-    p = np.asarray(points, dtype=np.float64)
-    n = np.full_like(p, np.nan)
-    dx = p[1:-1, 2:] - p[1:-1, :-2]
-    dy = p[2:, 1:-1] - p[:-2, 1:-1]
-    c = np.cross(dx, dy)
-    norm = np.linalg.norm(c, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n[1:-1, 1:-1] = c / norm
-    return n
 
 
 def correction_size(T_model_from_est: np.ndarray, center_mm: np.ndarray) -> tuple[float, float]:
@@ -259,24 +244,6 @@ def register_global(
     res = check_result(T, fit, -neg_rmse, name, center, cfg)
     res.extra["ransac_fitness"] = float(ransac.fitness)
     return res
-
-
-def register_local(
-    source_mm: np.ndarray,
-    target: o3d.geometry.PointCloud,
-    init: np.ndarray,
-    cfg: RegistrationConfig,
-    center_mm: np.ndarray | None = None,
-) -> RegistrationResult:
-    """Robust ICP only (per-frame refinement) from ``init``; ``target`` carries normals."""
-    src = np.asarray(source_mm, np.float64)
-    if len(src) < 10:
-        raise InvalidInputError("registration", f"too few estimate points: {len(src)}")
-    src_pcd = make_cloud(src)
-    T = icp_refine(src_pcd, target, init, cfg)
-    fit, rmse = evaluate(src_pcd, target, T, cfg)
-    center = src.mean(axis=0) if center_mm is None else center_mm
-    return check_result(T, fit, rmse, "icp", center, cfg)
 
 
 class SurfaceIndex:

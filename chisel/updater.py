@@ -10,9 +10,9 @@ Per frame of a surgical step (paper, section 2; deviations in ``docs/updater.md`
    cast at the frame's tracked pose;
 2. the depth source gives an estimate of the new depth (possibly up to scale);
 3. registration (unless switched off): a sequence-level RANSAC (FPFH) + robust ICP of all
-   frames' scaled estimates to the model surface gives one correction (hand-eye error),
-   then each frame is refined with robust point-to-plane ICP (tracking jitter) against
-   the model rendered at the corrected pose, with the scale re-solved there; frames
+   frames' scaled estimates to the model surface, then a camera-side hand-eye
+   correction F (robust mean of per-frame ICP results), then per frame a robust 7-DoF
+   ICP (pose and depth scale) from ``T_tracked @ F`` with a weak prior near it; frames
    whose fitness is too low are skipped and reported, never fused;
 4. the registered estimate is re-projected into the frame at its tracked pose -> M',
    pixels lost in projection take M_t ("imputation");
