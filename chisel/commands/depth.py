@@ -131,6 +131,7 @@ _TRAIN_OPTS = [
     "threads",
     "device",
     "no_augment",
+    "note",
 ]
 
 
@@ -181,7 +182,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
         "best_epoch": result.best_epoch,
         "stopped_early": result.stopped_early,
         "train_seconds": round(result.seconds, 1),
+        "train_cpu_seconds": round(result.cpu_seconds, 1),
         "history": result.history,
+        "note": args.note,
         "environment": _environment(),
     }
     save_checkpoint(out, result.net, info)
@@ -334,6 +337,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     t.add_argument("--widths", type=_ints, default=None, help="encoder widths, e.g. 16,24,32,48,64")
     t.add_argument(
         "--blocks", type=_ints, default=None, help="residual blocks per stage, e.g. 1,1,1,2,2"
+    )
+    t.add_argument(
+        "--note",
+        default=None,
+        help="free text stored in the checkpoint (e.g. the command that made the data)",
     )
     t.add_argument(
         "--max-minutes",

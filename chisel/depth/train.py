@@ -109,6 +109,9 @@ class TrainResult:
     """True if ``max_minutes`` cut training short."""
     seconds: float
     """Wall time of the whole run."""
+    cpu_seconds: float
+    """CPU time of this process over the run (all threads); on a shared machine the wall
+    time grows with the load, this does not as much."""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -196,6 +199,7 @@ def train(
         raise InvalidInputError("frames", "no training frames")
     device = resolve_device(cfg.device)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     with deterministic(cfg.seed, device, cfg.num_threads):
         net = copy.deepcopy(init) if init is not None else DepthNet(net_config)
         net = net.to(device).to(memory_format=torch.channels_last)
@@ -286,4 +290,5 @@ def train(
         best_epoch=int(best_epoch),
         stopped_early=stopped_early,
         seconds=time.perf_counter() - t0,
+        cpu_seconds=time.process_time() - c0,
     )
