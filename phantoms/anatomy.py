@@ -285,6 +285,12 @@ def mesh_field(field, lo: np.ndarray, hi: np.ndarray, step_mm: float) -> m3d.Man
     return man
 
 
+def airway_grid_mm(edge_mm: float, p: dict[str, float]) -> float:
+    """Marching-cubes step of the airway: the surface edge length, but at most half the
+    olfactory cleft's width (so the cleft never pinches off) and at most 1 mm."""
+    return float(min(edge_mm, 0.5 * p["roof_width_mm"], 1.0))
+
+
 def _segments(radius: float, edge_mm: float) -> int:
     return int(max(16, 4 * math.ceil(2.0 * math.pi * radius / edge_mm / 4.0)))
 
@@ -335,8 +341,7 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
     seed : int
         Seed of the wall undulation and of the further ethmoid cells' placement.
     edge_mm : float
-        Target edge length of the surface, mm; the airway grid uses ``min(edge_mm, 0.5)``
-        so the 1.5-3 mm olfactory cleft never pinches off.
+        Target edge length of the surface, mm (the airway grid: :func:`airway_grid_mm`).
 
     Raises
     ------
@@ -423,13 +428,14 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
     wall_e = p["ethmoid_cell_wall_mm"]
     n_eth = int(p["ethmoid_cells"])
     placed = 0
-    for _ in range(400):
+    for attempt in range(1500):
         if placed == n_eth:
             break
-        r = float(rng.uniform(2.5, 4.5))
-        y = float(rng.uniform(y_u - 2.0, c_p[1] + R_p))
-        z = float(rng.uniform(0.62 * H, 0.9 * H))
-        x = wall_x(y, z) + float(rng.uniform(1.0, 9.0)) + r
+        # smaller cells once the roomy spots are taken
+        r = float(rng.uniform(2.5, 4.5) if attempt < 500 else rng.uniform(2.0, 3.0))
+        y = float(rng.uniform(y_u - 4.0, c_p[1] + R_p + 4.0))
+        z = float(rng.uniform(0.6 * H, 0.92 * H))
+        x = wall_x(y, z) + float(rng.uniform(1.0, 12.0)) + r
         c = np.array([x, y, z])
         ok = z + r + wall_e < H + 2.0
         for other in cells:
@@ -448,7 +454,7 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
     # --- manifolds ---------------------------------------------------------------
     lo, hi = air.bounds()
     # an odd grid offset keeps marching-cubes vertices off the CT grid's lattice
-    airway = mesh_field(air, lo + 0.0731, hi, min(edge_mm, 0.5))
+    airway = mesh_field(air, lo + 0.0731, hi, airway_grid_mm(edge_mm, p))
 
     maxillary = m3d.Manifold.sphere(1.0, _segments(max(m_axes), max(edge_mm, 0.8))).scale(
         tuple(m_axes)

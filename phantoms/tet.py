@@ -18,9 +18,10 @@ import contextlib
 import tempfile
 from pathlib import Path
 
+import manifold3d as m3d
 import numpy as np
 
-from phantoms.anatomy import manifold_from_arrays
+from phantoms.anatomy import arrays_from_manifold, manifold_from_arrays
 from phantoms.errors import NotManifoldError, ParameterRangeError
 
 
@@ -138,7 +139,8 @@ def repair_surface(
     Returns
     -------
     (V', 3) float64 vertices and (F', 3) int64 faces of a closed, oriented 2-manifold
-    (checked with manifold3d).
+    (checked with manifold3d; where two parts of the solid touch along an edge, the
+    vertices there are duplicated so each part stays manifold).
 
     Raises
     ------
@@ -152,8 +154,24 @@ def repair_surface(
     env = envelope_mm if envelope_mm is not None else diag / 1000.0
     pts, tets = tetrahedralize(v, f, edge_mm=edge, envelope_mm=env, source="surface")
     bv, bf = boundary_surface(pts, tets)
-    manifold_from_arrays(bv, bf, "repaired surface")  # raises if still not a manifold
-    return bv, bf
+    try:
+        return arrays_from_manifold(manifold_from_arrays(bv, bf, "repaired surface"))
+    except NotManifoldError:
+        pass
+    # Two parts of the solid touching along an edge make that edge non-manifold; give
+    # every triangle its own corners and let manifold3d merge only what stays manifold.
+    corners = np.ascontiguousarray(bv[bf].reshape(-1, 3))
+    mesh = m3d.Mesh64(
+        vert_properties=corners, tri_verts=np.arange(len(corners), dtype=np.uint64).reshape(-1, 3)
+    )
+    mesh.merge()
+    man = m3d.Manifold(mesh)
+    if man.status() != m3d.Error.NoError or man.is_empty():
+        raise NotManifoldError(
+            "repaired surface",
+            f"still not a closed manifold (manifold3d status {man.status().name})",
+        )
+    return arrays_from_manifold(man)
 
 
 def vtu_bytes(points_mm: np.ndarray, tets: np.ndarray) -> bytes:
