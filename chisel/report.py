@@ -45,6 +45,9 @@ from chisel.evaluate import (
     table_methods,
     validate_metrics,
 )
+from chisel.geometry import Camera
+from chisel.raycast import MeshRaycaster
+from chisel.sequence import Frame as SeqFrame
 from chisel.sequence import depth_from_disk, depth_to_disk
 
 log = logging.getLogger(__name__)
@@ -656,3 +659,42 @@ def write_report(
         log.warning("report is %.1f MB; lower ReportMeshes.max_faces", size / 2**20)
     atomic_write_text(out_html, text)
     return Path(out_html)
+
+
+def make_step_panel(
+    step: int,
+    frame: SeqFrame,
+    camera: Camera,
+    preop_mesh: trimesh.Trimesh,
+    updated_mesh: trimesh.Trimesh,
+    estimated_depth_mm: np.ndarray | None = None,
+    change_mask: np.ndarray | None = None,
+) -> StepPanel:
+    """A Figure-4 panel for one frame of a step's update sequence.
+
+    The model depths are rendered at the frame's true pose when it has one (what the
+    surgeon saw), else its tracked pose. ``estimated_depth_mm`` (H, W) float32, any scale,
+    is median-scaled to the frame's ground-truth depth for display only.
+    """
+    T = (
+        frame.T_world_from_cam
+        if frame.T_world_from_cam_true is None
+        else frame.T_world_from_cam_true
+    )
+    gt = frame.depth_mm
+    est = None
+    if estimated_depth_mm is not None:
+        est = np.asarray(estimated_depth_mm, dtype=np.float32)
+        both = np.isfinite(est) & (np.isfinite(gt) if gt is not None else True)
+        if gt is not None and both.any():
+            est = est * np.float32(np.median(gt[both]) / np.median(est[both]))
+    return StepPanel(
+        step=step,
+        frame_index=frame.index,
+        rgb=frame.rgb,
+        preop_depth_mm=MeshRaycaster.from_trimesh(preop_mesh).render_depth(camera, T),
+        gt_depth_mm=gt,
+        estimated_depth_mm=est,
+        updated_depth_mm=MeshRaycaster.from_trimesh(updated_mesh).render_depth(camera, T),
+        change_mask=change_mask,
+    )

@@ -1,13 +1,21 @@
+import os
 import sys
 
 from snakemake.utils import validate
 
-configfile: "config/config.yaml"
+# Relative to the Snakefile, so `snakemake -s PATH/Snakefile -d OTHER_DIR` works.
+configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
 validate(config, "../schemas/config.schema.yaml")
 
-PY = sys.executable  # the interpreter running Snakemake: the project's virtual environment
+# Rules call `python -m ...`: the interpreter running Snakemake (the project's .venv) comes
+# first on PATH, and the repository on PYTHONPATH, also for jobs on other executors.
+os.environ.update(
+    PATH=os.pathsep.join([os.path.dirname(sys.executable), os.environ.get("PATH", "")]),
+    PYTHONPATH=os.pathsep.join(p for p in (workflow.basedir, os.environ.get("PYTHONPATH")) if p),
+)
+ENV = "../envs/chisel.yaml"
 RESULTS = f"results/{config['experiment']}"
 SEEDS = [int(s) for s in config["seeds"]]
 TABLE_SEEDS = [int(s) for s in config.get("table_seeds", SEEDS)]
@@ -51,3 +59,105 @@ wildcard_constraints:
 
 def step_str(step):
     return f"{int(step):02d}"
+
+
+MC = config["model"]
+
+
+DC = config.get("depth", {})
+
+
+def base_checkpoint():
+    """The configured depth checkpoint; "default" is the one shipped with the package."""
+    if DC.get("checkpoint", "default") == "default":
+        from chisel.depth import DEFAULT_CHECKPOINT
+
+        return str(DEFAULT_CHECKPOINT)
+    return DC["checkpoint"]
+
+
+def network_checkpoint(wildcards):
+    return rules.finetune.output.ckpt.format(seed=wildcards.seed) if DC.get("finetune", True) else []
+
+
+UC = config.get("update", {})
+
+
+def update_sequence(wc):
+    """The intraoperative sequence the updater reads (tracked poses + frames)."""
+    if wc.variant.startswith("posenoise-"):
+        noise = wc.variant.split("-", 1)[1]
+        return f"{RESULTS}/seed_{wc.seed}/retrack/{noise}/step_{wc.step}"
+    return f"{RESULTS}/seed_{wc.seed}/render/step_{wc.step}"
+
+
+def previous_model(wc):
+    step = int(wc.step)
+    if step == 1:
+        return f"{RESULTS}/seed_{wc.seed}/preop/model.npz"
+    return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{wc.method}/step_{step - 1:02d}/model.npz"
+
+
+def update_inputs(wc):
+    inputs = {
+        "model": previous_model(wc),
+        "index": f"{RESULTS}/seed_{wc.seed}/render/render.json",
+    }
+    if wc.variant.startswith("posenoise-"):
+        inputs["seq"] = update_sequence(wc)
+    if METHOD_SPECS[wc.method][0] == "network":
+        inputs["pred"] = f"{RESULTS}/seed_{wc.seed}/depth/pred/step_{wc.step}"
+    return inputs
+
+
+def update_options(wc, input):
+    depth, registration = METHOD_SPECS[wc.method]
+    opts = [f"--threshold-mm {UC.get('threshold_mm', 1.0)}"]
+    opts.append(f"--depth-source sequence:{input.pred}" if depth == "network" else "--depth-source gt")
+    if not registration:
+        opts.append("--no-registration")
+    kind, _, value = wc.variant.partition("-")
+    if kind == "seqlen":
+        opts.append(f"--max-frames {value}")
+    if kind == "depthnoise":
+        opts.append(f"--depth-noise-mm {value} --depth-noise-seed {wc.seed}")
+    return " ".join(opts)
+
+
+def method_mesh(wc, method):
+    step = int(wc.step)
+    if method == "no_update" or step == 0:
+        return f"{RESULTS}/seed_{wc.seed}/preop/mesh.ply"
+    return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{method}/step_{wc.step}/mesh.ply"
+
+
+def eval_methods(wc):
+    if int(wc.step) == 0:
+        return ["updated"]  # the paper's "preop" row: the preoperative model, before any update
+    methods = variant_methods(wc.variant)
+    return (["no_update"] if wc.variant == "base" and "no_update" in config["methods"] else []) + methods
+
+
+def mask_methods(wc):
+    # Change masks are scored on the full sequence of the base experiment only.
+    if int(wc.step) == 0 or wc.variant != "base":
+        return []
+    return [m for m in eval_methods(wc) if m != "no_update"]
+
+
+def variant_steps(wc):
+    steps = [0] + STEPS if wc.variant == "base" else STEPS
+    return [f"{RESULTS}/seed_{wc.seed}/{wc.variant}/eval/step_{s:02d}.json" for s in steps]
+
+
+SWEEP_PARAMS = {"seqlen": "frames", "posenoise": "pose_noise_mm_deg", "depthnoise": "depth_noise_mm"}
+
+
+def report_sweeps(wc):
+    """Sweep CSVs shown in the report; none unless config report_sweeps is true."""
+    if not config.get("report_sweeps", False):
+        return {}
+    return {k: f"{RESULTS}/sweeps/{k}.csv" for k in SWEEPS if SWEEPS[k]}
+
+
+RC = config["render"]

@@ -1,24 +1,3 @@
-def method_mesh(wc, method):
-    step = int(wc.step)
-    if method == "no_update" or step == 0:
-        return f"{RESULTS}/seed_{wc.seed}/preop/mesh.ply"
-    return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{method}/step_{wc.step}/mesh.ply"
-
-
-def eval_methods(wc):
-    if int(wc.step) == 0:
-        return ["updated"]  # the paper's "preop" row: the preoperative model, before any update
-    methods = variant_methods(wc.variant)
-    return (["no_update"] if wc.variant == "base" and "no_update" in config["methods"] else []) + methods
-
-
-def mask_methods(wc):
-    # Change masks are scored on the full sequence of the base experiment only.
-    if int(wc.step) == 0 or wc.variant != "base":
-        return []
-    return [m for m in eval_methods(wc) if m != "no_update"]
-
-
 rule evaluate_step:
     input:
         manifest=rules.phantom.output.manifest,
@@ -38,15 +17,12 @@ rule evaluate_step:
         eval_sequence=lambda wc: f"{RESULTS}/seed_{wc.seed}/render/eval/step_{wc.step}",
         change_sequence=lambda wc: f"{RESULTS}/seed_{wc.seed}/render/step_{wc.step}",
     threads: 1
+    conda:
+        ENV
     resources:
         mem_mb=MEM_MB,
     script:
         "../scripts/evaluate_step.py"
-
-
-def variant_steps(wc):
-    steps = [0] + STEPS if wc.variant == "base" else STEPS
-    return [f"{RESULTS}/seed_{wc.seed}/{wc.variant}/eval/step_{s:02d}.json" for s in steps]
 
 
 rule seed_table:
@@ -61,8 +37,10 @@ rule seed_table:
     params:
         experiment=lambda wc: f"{config['experiment']}/seed_{wc.seed}/{wc.variant}",
     threads: 1
+    conda:
+        ENV
     shell:
-        "{PY} -m chisel evaluate table --inputs {input} --experiment {params.experiment} "
+        "python -m chisel evaluate table --inputs {input} --experiment {params.experiment} "
         "--out-dir $(dirname {output.metrics}) > {log} 2>&1"
 
 
@@ -75,6 +53,8 @@ rule experiment_metrics:
     log:
         f"{RESULTS}/logs/experiment_metrics.log",
     threads: 1
+    conda:
+        ENV
     shell:
         "cp {input} {output}.tmp && mv {output}.tmp {output} 2> {log}"
 
@@ -90,12 +70,11 @@ rule seeds_table:
     params:
         labels=[f"seed_{s}" for s in TABLE_SEEDS],
     threads: 1
+    conda:
+        ENV
     shell:
-        "{PY} -m chisel evaluate seeds --inputs {input} --labels {params.labels} "
+        "python -m chisel evaluate seeds --inputs {input} --labels {params.labels} "
         "--out-dir $(dirname {output}) > {log} 2>&1"
-
-
-SWEEP_PARAMS = {"seqlen": "frames", "posenoise": "pose_noise_mm_deg", "depthnoise": "depth_noise_mm"}
 
 
 rule sweep:
@@ -115,8 +94,10 @@ rule sweep:
         ),
         param=lambda wc: SWEEP_PARAMS[wc.kind],
     threads: 1
+    conda:
+        ENV
     shell:
-        "{PY} -m chisel evaluate sweep --param {params.param} --run {params.runs} "
+        "python -m chisel evaluate sweep --param {params.param} --run {params.runs} "
         "--out {output.csv} > {log} 2>&1"
 
 
@@ -135,12 +116,10 @@ rule panels:
     params:
         steps=STEPS,
     threads: 1
+    conda:
+        ENV
     script:
         "../scripts/panels.py"
-
-
-def report_sweeps(wc):
-    return {k: f"{RESULTS}/sweeps/{k}.csv" for k in SWEEPS if SWEEPS[k]}
 
 
 rule report:
@@ -159,10 +138,12 @@ rule report:
         sweeps=lambda wc: " ".join(f"{k}={v}" for k, v in report_sweeps(wc).items()),
         title=f"Endoscopic Chisel: experiment {config['experiment']}",
     threads: 1
+    conda:
+        ENV
     shell:
-        "ROI=$({PY} -c \"import json,sys; b=json.load(open(sys.argv[1]))['roi_box_mm']; "
+        "ROI=$(python -c \"import json,sys; b=json.load(open(sys.argv[1]))['roi_box_mm']; "
         "print(','.join(str(v) for c in b for v in c))\" {input.manifest}) && "
-        "{PY} -m chisel report --metrics {input.metrics} --panels {input.panels} "
+        "python -m chisel report --metrics {input.metrics} --panels {input.panels} "
         "--preop-mesh {input.preop} --updated-mesh {input.updated} --roi=$ROI "
         "$( [ -n '{params.sweeps}' ] && echo --sweep {params.sweeps} ) "
         "--title '{params.title}' --out {output.html} > {log} 2>&1"

@@ -5,10 +5,20 @@ rule phantom:
         f"{RESULTS}/logs/seed_{{seed}}/phantom.log",
     params:
         bites=BITES,
-        spacing=config["phantom"].get("ct_spacing_mm", 0.5),
+        opts=" ".join(
+            f"--{flag} {config['phantom'][key]}"
+            for key, flag in [
+                ("ct_spacing_mm", "spacing-mm"),
+                ("mucosa_mm", "mucosa-mm"),
+                ("mesh_edge_mm", "mesh-edge-mm"),
+            ]
+            if key in config["phantom"]
+        ),
     threads: 1
+    conda:
+        ENV
     resources:
         mem_mb=MEM_MB,
     shell:
-        "{PY} -m phantoms generate --seed {wildcards.seed} --bites {params.bites} "
-        "--ct-spacing-mm {params.spacing} --out $(dirname {output.manifest}) > {log} 2>&1"
+        "python -m phantoms generate --seed {wildcards.seed} --bites {params.bites} "
+        "{params.opts} --out $(dirname {output.manifest}) > {log} 2>&1"

@@ -1,7 +1,3 @@
-MC = config["model"]
-DC = config.get("depth", {})
-
-
 rule ct_surface:
     """CT segmentation surface from the preoperative CT volume (as a user with real CT would)."""
     input:
@@ -11,10 +7,12 @@ rule ct_surface:
     log:
         f"{RESULTS}/logs/seed_{{seed}}/ct_surface.log",
     threads: 1
+    conda:
+        ENV
     resources:
         mem_mb=MEM_MB,
     shell:
-        "{PY} -m chisel ct-surface --ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz "
+        "python -m chisel ct-surface --ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz "
         "--out {output.mesh} > {log} 2>&1"
 
 
@@ -29,10 +27,12 @@ rule preop_model:
     params:
         opts=f"--voxel-size-mm {MC['voxel_size_mm']} --trunc-mm {MC['trunc_mm']}",
     threads: 2
+    conda:
+        ENV
     resources:
         mem_mb=MEM_MB,
     shell:
-        "{PY} -m chisel build --surface {input.surface} --sequence $(dirname {input.index})/preop "
+        "python -m chisel build --surface {input.surface} --sequence $(dirname {input.index})/preop "
         "{params.opts} --out {output.model} > {log} 2>&1"
 
 
@@ -46,8 +46,10 @@ rule preop_ct_depth:
     log:
         f"{RESULTS}/logs/seed_{{seed}}/preop_ct_depth.log",
     threads: 1
+    conda:
+        ENV
     shell:
-        "{PY} -m chisel render-depth --mesh {input.surface} --sequence $(dirname {input.index})/preop "
+        "python -m chisel render-depth --mesh {input.surface} --sequence $(dirname {input.index})/preop "
         "--out {output.seq} > {log} 2>&1"
 
 
@@ -55,24 +57,22 @@ rule finetune:
     """Per-patient fine-tuning of the depth network on the preop sequence (as the paper does)."""
     input:
         seq=rules.preop_ct_depth.output.seq,
+        base=base_checkpoint(),
     output:
         ckpt=f"{RESULTS}/seed_{{seed}}/depth/finetuned.pt",
     log:
         f"{RESULTS}/logs/seed_{{seed}}/finetune.log",
     params:
-        base="" if DC.get("checkpoint", "default") == "default" else f"--checkpoint {DC['checkpoint']}",
         epochs=DC.get("finetune_epochs", 3),
         enabled=DC.get("finetune", True),
     threads: 2
+    conda:
+        ENV
     resources:
         mem_mb=MEM_MB,
     shell:
-        "{PY} -m chisel depth finetune {params.base} --sequence {input.seq} --epochs {params.epochs} "
+        "python -m chisel depth finetune --checkpoint {input.base} --sequence {input.seq} --epochs {params.epochs} "
         "--seed {wildcards.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
-
-
-def network_checkpoint(wildcards):
-    return rules.finetune.output.ckpt.format(seed=wildcards.seed) if DC.get("finetune", True) else []
 
 
 rule predict_depth:
@@ -84,10 +84,10 @@ rule predict_depth:
     log:
         f"{RESULTS}/logs/seed_{{seed}}/predict_step_{{step}}.log",
     params:
-        ckpt=lambda wc, input: f"--checkpoint {input.ckpt}" if input.ckpt else (
-            "" if DC.get("checkpoint", "default") == "default" else f"--checkpoint {DC['checkpoint']}"
-        ),
+        ckpt=lambda wc, input: input.ckpt if input.ckpt else base_checkpoint(),
     threads: 2
+    conda:
+        ENV
     shell:
-        "{PY} -m chisel depth predict {params.ckpt} --sequence $(dirname {input.index})/step_{wildcards.step} "
+        "python -m chisel depth predict --checkpoint {params.ckpt} --sequence $(dirname {input.index})/step_{wildcards.step} "
         "--out {output.seq} > {log} 2>&1"

@@ -1,6 +1,3 @@
-RC = config["render"]
-
-
 rule render:
     input:
         manifest=rules.phantom.output.manifest,
@@ -16,10 +13,12 @@ rule render:
             f"--pose-noise-deg {RC.get('pose_noise_deg', 0.0)}"
         ),
     threads: 2
+    conda:
+        ENV
     resources:
         mem_mb=MEM_MB,
     shell:
-        "{PY} -m sim render --phantom $(dirname {input.manifest}) --out $(dirname {output.index}) "
+        "python -m sim render --phantom $(dirname {input.manifest}) --out $(dirname {output.index}) "
         "--seed {wildcards.seed} {params.opts} > {log} 2>&1"
 
 
@@ -38,8 +37,10 @@ rule retrack:
         # jitter of X/4 mm and X/4 degrees per axis; 0 = exact poses.
         jitter=lambda wc: float(wc.noise) / 4.0,
     threads: 1
+    conda:
+        ENV
     shell:
-        "{PY} -m sim retrack --sequence $(dirname {input.index})/step_{wildcards.step} "
+        "python -m sim retrack --sequence $(dirname {input.index})/step_{wildcards.step} "
         "--handeye-mm {wildcards.noise} --handeye-deg {wildcards.noise} "
         "--jitter-mm {params.jitter} --jitter-deg {params.jitter} "
         "--seed {wildcards.seed} --out {output.seq} > {log} 2>&1"

@@ -6,7 +6,9 @@ import logging
 from chisel.evaluate import evaluate_step, write_step_metrics
 
 sm = snakemake  # noqa: F821 - injected by Snakemake
-logging.basicConfig(filename=sm.log[0], level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+logging.basicConfig(
+    filename=sm.log[0], level=logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+)
 
 manifest = json.loads(open(sm.input.manifest).read())
 phantom_dir = sm.input.manifest.rsplit("/", 1)[0]
