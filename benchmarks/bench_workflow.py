@@ -1,0 +1,63 @@
+"""Wall time of the default experiment end to end (goal: <= 15 min on 2 cores).
+
+Runs `snakemake --cores 2` on a config (default: config/config.yaml) in a fresh folder,
+then prints the experiment's headline errors from its metrics.json and, last, the wall
+time. `--configfile config/smoke.yaml` times the smoke experiment (goal: <= 3 min).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--configfile", type=Path, default=ROOT / "config" / "config.yaml")
+    parser.add_argument("--workdir", type=Path, help="keep results here (default: a temp dir)")
+    parser.add_argument("--target", default="all")
+    args = parser.parse_args()
+    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-bench-"))
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        "-s",
+        str(ROOT / "Snakefile"),
+        "-d",
+        str(workdir),
+        "--cores",
+        "2",
+        "--configfile",
+        str(args.configfile.resolve()),
+        args.target,
+    ]
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    wall_s = time.perf_counter() - t0
+    if r.returncode != 0:
+        sys.stderr.write(r.stdout[-4000:] + r.stderr[-4000:])
+        print(f"workflow_failed: rc={r.returncode}")
+        return 1
+    experiment = next(workdir.joinpath("results").iterdir()).name
+    metrics = json.loads((workdir / "results" / experiment / "metrics.json").read_text())
+    print(f"experiment: {experiment}")
+    print(f"workdir: {workdir}")
+    for step in metrics["steps"]:
+        label = step["label"].replace(" ", "_")
+        for method, cell in step["methods"].items():
+            print(f"{label}_{method}_mean_mm: {cell['mean_mm']:.3f}")
+            print(f"{label}_{method}_std_mm: {cell['std_mm']:.3f}")
+    print(f"workflow_s: {wall_s:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
