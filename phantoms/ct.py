@@ -92,6 +92,24 @@ def grid_for_box(box_min_mm, box_max_mm, spacing_mm: float) -> CTGrid:
     return CTGrid(tuple(float(v) for v in lo), tuple(int(v) for v in n), float(spacing_mm))
 
 
+def grid_for_block(block_min_mm, block_max_mm, spacing_mm: float, inset_mm: float) -> CTGrid:
+    """The CT field of view of a phantom: the tissue block, like a head in a scanner.
+
+    The anterior side reaches two voxels into the air in front of the nostril (the face
+    is imaged); the other five sides stay ``inset_mm`` inside the block, because the
+    block's cut faces are not anatomy: tissue continues beyond the field of view, as in
+    a real CT. Voxel centres are offset by a quarter voxel from the block's 0.1 mm
+    lattice.
+    """
+    bmin = np.asarray(block_min_mm, float)
+    bmax = np.asarray(block_max_mm, float)
+    lo = bmin + inset_mm + 0.25 * spacing_mm
+    lo[1] = bmin[1] - 2.25 * spacing_mm
+    hi = bmax - inset_mm
+    n = np.floor((hi - lo) / spacing_mm).astype(int) + 1
+    return CTGrid(tuple(float(v) for v in lo), tuple(int(v) for v in n), float(spacing_mm))
+
+
 class SurfaceDistance:
     """Signed distance to a closed triangle mesh (positive outside the solid), mm.
 
@@ -131,33 +149,61 @@ class SurfaceDistance:
         hit = self.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, dtype=np.float32)))
         return hit["t_hit"].numpy()
 
-    def signed_distance_grid(
-        self, points_mm: np.ndarray, clip_mm: float, spacing_mm: float
-    ) -> np.ndarray:
-        """Signed distance on a (nx, ny, nz, 3) grid of points, clipped to ``±clip_mm``.
+    def inside_grid(self, points_mm: np.ndarray) -> np.ndarray:
+        """Occupancy of a (nx, ny, nz, 3) grid of points -> (nx, ny, nz) bool.
 
-        Exact distances are computed only within ``clip_mm`` (plus a voxel) of the
-        surface, found from the occupancy grid; farther voxels get ``±clip_mm``. Returns
+        One ray per voxel, then a majority of 3 rays for every voxel that differs from a
+        face neighbour: a parity error of the single ray (a ray grazing an edge) always
+        leaves such a disagreement, so this matches 3 rays everywhere at half the cost.
+        """
+        shape = points_mm.shape[:-1]
+        p = np.ascontiguousarray(points_mm.reshape(-1, 3), dtype=np.float32)
+        occ = self.scene.compute_occupancy(o3d.core.Tensor(p), nsamples=1).numpy()
+        occ = occ.reshape(shape).astype(bool)
+        recheck = _boundary(occ)
+        occ[recheck] = self.inside(points_mm[recheck])
+        return occ
+
+    def signed_distance_grid(
+        self, points_mm: np.ndarray, clip_mm: tuple[float, float], spacing_mm: float
+    ) -> np.ndarray:
+        """Clipped signed distance on a (nx, ny, nz, 3) grid of points.
+
+        ``clip_mm = (inside, outside)``: depths are clipped to ``inside`` and distances
+        in air to ``outside``. Exact distances are computed only for voxels within the
+        clip (plus a voxel) of the surface, found from the occupancy grid. Returns
         (nx, ny, nz) float32, mm, positive outside the solid.
         """
-        inside = self.inside(points_mm)
-        boundary = inside ^ ndimage.binary_erosion(inside, border_value=1)
-        boundary |= ~inside ^ ndimage.binary_erosion(~inside, border_value=1)
+        clip_in, clip_out = clip_mm
+        inside = self.inside_grid(points_mm)
+        boundary = _boundary(inside)
         steps = (
             ndimage.distance_transform_edt(~boundary)
             if boundary.any()
             else np.full(inside.shape, np.inf)
         )
-        band = steps * spacing_mm <= clip_mm + spacing_mm
-        sd = np.where(inside, -clip_mm, clip_mm).astype(np.float32)
-        d = np.minimum(self.distance(points_mm[band]), clip_mm)
-        sd[band] = np.where(inside[band], -d, d)
+        reach = np.where(inside, clip_in, clip_out) + spacing_mm
+        band = steps * spacing_mm <= reach
+        sd = np.where(inside, -clip_in, clip_out).astype(np.float32)
+        d = self.distance(points_mm[band])
+        sd[band] = np.where(inside[band], -np.minimum(d, clip_in), np.minimum(d, clip_out))
         return sd
 
 
-def clip_distance_mm(spacing_mm: float, mucosa_mm: float) -> float:
-    """Largest |signed distance| the label/HU model looks at (beyond it both saturate)."""
-    return mucosa_mm + spacing_mm
+def _boundary(inside: np.ndarray) -> np.ndarray:
+    """Voxels with a face neighbour on the other side (both sides of the surface)."""
+    out = inside ^ ndimage.binary_erosion(inside, border_value=1)
+    out |= ~inside ^ ndimage.binary_erosion(~inside, border_value=1)
+    return out
+
+
+def clip_distance_mm(spacing_mm: float, mucosa_mm: float) -> tuple[float, float]:
+    """(depth, air distance) beyond which the label/HU model saturates, mm.
+
+    In air the tissue ramp is 0 from one voxel out; inside, bone is complete at
+    ``mucosa + spacing / 2`` deep.
+    """
+    return mucosa_mm + spacing_mm, spacing_mm
 
 
 def labels_from_sd(sd_mm: np.ndarray, mucosa_mm: float) -> np.ndarray:
@@ -197,25 +243,29 @@ def update_sd(
     surface: SurfaceDistance,
     changed_min_mm: np.ndarray,
     changed_max_mm: np.ndarray,
-    clip_mm: float,
+    clip_mm: tuple[float, float],
 ) -> np.ndarray:
     """Recompute the clipped signed distance where the solid may have changed.
 
     When the solid changes only inside the box ``[changed_min_mm, changed_max_mm]``
-    (a cutter's bounds), a voxel farther than ``clip_mm`` from that box keeps its
-    clipped distance: every surface within ``clip_mm`` of it is unchanged. So only the
-    box grown by ``clip_mm`` plus a voxel is recomputed. Returns a new (nx, ny, nz)
-    float32 array.
+    (a cutter's bounds), a voxel farther than the clip from that box keeps its
+    clipped distance: every surface within the clip of it is unchanged. So only the
+    box grown by the larger clip plus a voxel is recomputed. ``clip_mm = (inside,
+    outside)`` as in :meth:`SurfaceDistance.signed_distance_grid`. Returns a new
+    (nx, ny, nz) float32 array.
     """
-    grow = clip_mm + grid.spacing_mm
+    clip_in, clip_out = clip_mm
+    grow = max(clip_in, clip_out) + grid.spacing_mm
     lo, hi = grid.index_box(np.asarray(changed_min_mm) - grow, np.asarray(changed_max_mm) + grow)
     out = sd_mm.copy()
     if any(h <= l for l, h in zip(lo, hi, strict=True)):
         return out
     pts = grid.points(lo, hi)
     inside = surface.inside(pts)
-    d = np.minimum(surface.distance(pts), clip_mm)
-    out[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = np.where(inside, -d, d)
+    d = surface.distance(pts)
+    out[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = np.where(
+        inside, -np.minimum(d, clip_in), np.minimum(d, clip_out)
+    )
     return out
 
 

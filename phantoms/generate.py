@@ -31,7 +31,7 @@ from phantoms.ct import (
     SurfaceDistance,
     clip_distance_mm,
     ct_noise,
-    grid_for_box,
+    grid_for_block,
     hu_from_sd,
     labels_from_sd,
     nifti_gz_bytes,
@@ -141,8 +141,13 @@ def build_phantom(
         + config.roi_margin_mm
     )
 
-    grid = grid_for_box(anatomy.block_min_mm, anatomy.block_max_mm, config.spacing_mm)
     clip = clip_distance_mm(config.spacing_mm, config.mucosa_mm)
+    grid = grid_for_block(
+        anatomy.block_min_mm,
+        anatomy.block_max_mm,
+        config.spacing_mm,
+        clip[0] + 2 * config.spacing_mm,
+    )
     noise = ct_noise(grid.shape, config.noise_hu, config.seed)
 
     solids: list[tuple[str, m3d.Manifold, float, m3d.Manifold | None]] = [

@@ -67,11 +67,11 @@ PARAM_RANGES: dict[str, tuple[float, float, str]] = {
     "st_length_mm": (15.0, 20.0, "superior turbinate length (+y)"),
     # uncinate process (wall of the infundibulum)
     "uncinate_thickness_mm": (0.7, 1.5, "uncinate process thickness (bony lamella)"),
-    "uncinate_radius_mm": (6.5, 9.0, "curvature radius of the uncinate (= infundibulum radius)"),
+    "uncinate_radius_mm": (5.5, 7.5, "curvature radius of the uncinate (= infundibulum radius)"),
     "uncinate_bulge_mm": (1.5, 2.5, "protrusion of the uncinate medially from the lateral wall"),
     "uncinate_y_offset_mm": (
-        -6.0,
-        -2.0,
+        -8.0,
+        -3.0,
         "uncinate centre along +y relative to the middle turbinate's anterior end",
     ),
     "uncinate_z_frac": (0.48, 0.54, "uncinate centre height (fraction of the airway height)"),

@@ -109,8 +109,8 @@ def test_signed_distance_grid_matches_the_analytic_sphere():
     v, f = _sphere_solid(r)
     grid = grid_for_box((-r, -r, -r), (r, r, r), 0.5)
     pts = grid.points()
-    sd = SurfaceDistance(v, f).signed_distance_grid(pts, clip_mm=1.5, spacing_mm=0.5)
-    truth = np.clip(np.linalg.norm(pts, axis=-1) - r, -1.5, 1.5)
+    sd = SurfaceDistance(v, f).signed_distance_grid(pts, clip_mm=(1.5, 0.5), spacing_mm=0.5)
+    truth = np.clip(np.linalg.norm(pts, axis=-1) - r, -1.5, 0.5)
     # the 256-segment polyhedron lies within ~0.005 mm of the true sphere
     assert np.abs(sd - truth).max() < 0.01
 
@@ -134,7 +134,7 @@ def test_hu_iso_surface_of_a_sphere_is_sub_voxel():
     r, spacing = 5.0, 0.5
     v, f = _sphere_solid(r, (0.1, -0.2, 0.3))
     grid = grid_for_box((-6, -6, -6), (6, 6, 6), spacing)
-    sd = SurfaceDistance(v, f).signed_distance_grid(grid.points(), 1.5, spacing)
+    sd = SurfaceDistance(v, f).signed_distance_grid(grid.points(), (1.5, spacing), spacing)
     hu = hu_from_sd(sd, spacing, 1.0).astype(np.float32)
     verts, _, _, _ = marching_cubes(hu, level=ISO_HU)
     world = verts @ grid.T_world_from_voxel[:3, :3].T + grid.T_world_from_voxel[:3, 3]
@@ -155,6 +155,14 @@ def test_labels_and_hu_follow_the_documented_model():
     assert np.array_equal(hu_from_sd(sd, 0.5, 1.0, noise), hu + 10)
 
 
+def test_single_ray_occupancy_with_recheck_matches_three_rays():
+    v, f = _sphere_solid(6.0)
+    grid = grid_for_box((-7, -7, -7), (7, 7, 7), 0.25)
+    surface = SurfaceDistance(v, f)
+    pts = grid.points()
+    assert np.array_equal(surface.inside_grid(pts), surface.inside(pts))
+
+
 def test_incremental_update_equals_full_recompute():
     v, f = _sphere_solid(6.0)
     solid = manifold_from_arrays(v, f)
@@ -162,7 +170,7 @@ def test_incremental_update_equals_full_recompute():
     after = solid - cutter
     grid = grid_for_box((-7, -7, -7), (7, 7, 7), 0.5)
     pts = grid.points()
-    clip = 1.5
+    clip = (1.5, 0.5)
     sd0 = SurfaceDistance(v, f).signed_distance_grid(pts, clip, 0.5)
     va, fa = arrays_from_manifold(after)
     surface = SurfaceDistance(va, fa)
