@@ -288,3 +288,15 @@ def test_unwritable_output_raises_output_error(tmp_path):
     assert "file" in str(info.value)
     with pytest.raises(OutputError):
         check_output_dir(blocker)  # exists and is not a folder
+
+
+def test_phantoms_imports_neither_chisel_nor_sim():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, phantoms, phantoms.cli, phantoms.tet, phantoms.path;"
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('chisel', 'sim')];"
+        "assert not bad, bad"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
