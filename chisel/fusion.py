@@ -55,6 +55,8 @@ def _integrate_kernel(
     xb,
     z_near,
     z_far,
+    lateral_px,
+    use_lateral,
 ):
     # Inputs are sanitised by the caller: depth <= 0 means invalid (no NaN reaches here,
     # which keeps fastmath's no-NaN assumption true).
@@ -141,6 +143,12 @@ def _integrate_kernel(
             sd = dm - zc
             if sd < -trunc_mm:
                 continue
+            if use_lateral and sd > 0.0:
+                # Projective distance overestimates free space beside a silhouette: bound it
+                # by the lateral distance (at this depth) to the nearest pixel left alone.
+                lat = lateral_px[v, u] * zc / fx
+                if sd > lat:
+                    sd = lat
             d = sd * inv_trunc
             if d > 1.0:
                 d = 1.0
@@ -246,6 +254,7 @@ def integrate(
     pixel_weight: np.ndarray | None = None,
     rgb: np.ndarray | None = None,
     reset: np.ndarray | None = None,
+    lateral_px: np.ndarray | None = None,
 ) -> int:
     """Fuse one depth map into ``model`` **in place**; returns the number of voxels updated.
 
@@ -261,6 +270,13 @@ def integrate(
     reset : (X, Y, Z) uint8, per-step "touched" flags. When given, a voxel touched for
         the first time in this step has its old weight reset to 0 before averaging (the
         paper's ``w = 0 * W_t + m``) and its flag set to 1.
+    lateral_px : (H, W) float32 or None. Image distance (pixels) from each pixel to the
+        nearest pixel that is *not* integrated (e.g. ``cv2.distanceTransform`` of the change
+        mask). When given, the positive distance of a voxel is bounded by that lateral
+        distance at the voxel's depth: along a changed ray that grazes the remaining tissue
+        (the rim of a bite), the projective distance d* says "far from any surface" while
+        the true distance is the gap to the rim, and an unbounded d* would pull the rim
+        back by up to a voxel. Signs never change, so no surface is created.
     """
     T = check_rigid(T_world_from_cam, "T_world_from_cam")
     depth = np.asarray(depth_mm, dtype=np.float32)
@@ -298,6 +314,12 @@ def integrate(
         reset_arr = reset
     else:
         reset_arr = np.zeros((1, 1, 1), dtype=np.uint8)
+    use_lateral = lateral_px is not None
+    if use_lateral:
+        camera.check_image(lateral_px, "lateral_px")
+        lateral = np.ascontiguousarray(lateral_px, dtype=np.float32)
+    else:
+        lateral = np.zeros((1, 1), dtype=np.float32)
     # Voxel index -> camera frame in one affine map (rotation block scaled by the voxel).
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
     r2_max, xb = _camera_bounds(camera)
@@ -324,5 +346,7 @@ def integrate(
         xb,
         1e-3,
         z_far,
+        lateral,
+        use_lateral,
     )
     return int(n)

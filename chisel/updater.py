@@ -30,6 +30,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Literal
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -412,8 +413,16 @@ class ChiselUpdater:
         if reg_res is not None:
             self._F_hist.append(invert_rigid(T) @ reg_res.T_model_from_est @ T)
         mask = change_mask(m_prime, R, self.cfg.change)
+        lateral = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         rep.voxels_updated = integrate(
-            self.model, self.camera, T, m_prime, pixel_weight=mask, rgb=frame.rgb, reset=self._reset
+            self.model,
+            self.camera,
+            T,
+            m_prime,
+            pixel_weight=mask,
+            rgb=frame.rgb,
+            reset=self._reset,
+            lateral_px=lateral,
         )
         valid = np.isfinite(R)
         rep.changed_fraction = float(mask.sum() / max(int(valid.sum()), 1))
