@@ -25,20 +25,9 @@ def main() -> int:
     parser.add_argument("--target", default="all")
     args = parser.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-bench-"))
-    cmd = [
-        sys.executable,
-        "-m",
-        "snakemake",
-        "-s",
-        str(ROOT / "Snakefile"),
-        "-d",
-        str(workdir),
-        "--cores",
-        "2",
-        "--configfile",
-        str(args.configfile.resolve()),
-        args.target,
-    ]
+    # The target goes before --configfile, which takes several values.
+    cmd = [sys.executable, "-m", "snakemake", args.target, "-s", str(ROOT / "Snakefile")]
+    cmd += ["-d", str(workdir), "--cores", "2", "--configfile", str(args.configfile.resolve())]
     t0 = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True)
     wall_s = time.perf_counter() - t0
