@@ -11,7 +11,8 @@ in the same run is a constant-depth predictor (what median scaling alone achieve
 Speed: frames/s of the depth source (uint8 RGB frame -> depth map, batch 1, 320x256,
 ``--threads`` torch threads), eager checkpoint and TorchScript export. Prints
 ``name: value`` lines, ``infer_fps`` last (the path ``load_depth_source`` gives the
-updater for a checkpoint). Timings on a shared machine are pessimistic.
+updater for a checkpoint: scripted, ``--threads`` threads, default 1), after the same
+path with 2 threads. Timings on a shared machine are pessimistic.
 """
 
 from __future__ import annotations
@@ -72,7 +73,13 @@ def main() -> None:
     ap.add_argument("--data", nargs="*", default=None, help="held-out dataset(s) or sequences")
     ap.add_argument("--seeds", default="0-3", help="evaluation phantom seeds to render (0-99)")
     ap.add_argument("--frames", type=int, default=20, help="frames per rendered sequence")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads for the headline figure (default 1: on this shared 2-core "
+        "machine 2 threads stall on descheduled OpenMP workers; infer_fps_threads2 shows it)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     ck = Path(args.checkpoint)
@@ -103,7 +110,11 @@ def main() -> None:
         rgb = seqs[0].rgb(0) if seqs else rng.integers(0, 256, (256, 320, 3), dtype=np.uint8)
         print(f"infer_size: {rgb.shape[1]}x{rgb.shape[0]}")
         ts_path = export_model(load_predictor(ck)[0], Path(tmp) / "model.pt")
-        print(f"infer_fps_torchscript: {fps(load_depth_source(ts_path), rgb):.1f}")
+        print(f"infer_fps_eager: {fps(load_depth_source(ck, script=False), rgb):.1f}")
+        print(f"infer_fps_torchscript_export: {fps(load_depth_source(ts_path), rgb):.1f}")
+        torch.set_num_threads(2)
+        print(f"infer_fps_threads2: {fps(source, rgb):.1f}")
+        torch.set_num_threads(args.threads)
         print(f"infer_fps: {fps(source, rgb):.1f}")
 
 

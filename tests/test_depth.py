@@ -121,7 +121,7 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory, dataset: Path) -> Path:
     frames = load_frames(find_sequences([dataset]))
-    cfg = TrainConfig(epochs=2, batch_size=4, seed=3, augment=None)
+    cfg = TrainConfig(num_threads=1, epochs=2, batch_size=4, seed=3, augment=None)
     result = train(frames, cfg, TINY)
     return save_checkpoint(tmp_path_factory.mktemp("ck") / "tiny.pt", result.net, {"note": "t"})
 
@@ -225,7 +225,7 @@ def test_config_validation_and_round_trip() -> None:
     with pytest.raises(InvalidInputError, match="unknown"):
         DepthNetConfig.from_dict({"widths": [8, 16], "depth": 3})
     with pytest.raises(InvalidInputError, match="epochs"):
-        TrainConfig(epochs=0)
+        TrainConfig(num_threads=1, epochs=0)
     with pytest.raises(InvalidInputError, match="hflip"):
         AugmentConfig(hflip=2.0)
 
@@ -362,7 +362,7 @@ def test_training_reduces_loss_and_validates(dataset: Path) -> None:
     train_refs, val_refs = split_by_group(refs, 0.34, seed=0)
     frames = load_frames(train_refs)
     val = load_frames(val_refs)
-    cfg = TrainConfig(epochs=12, batch_size=4, lr=3e-3, seed=0, augment=None)
+    cfg = TrainConfig(num_threads=1, epochs=12, batch_size=4, lr=3e-3, seed=0, augment=None)
     result = train(frames, cfg, TINY, val_frames=val)
     losses = [row["loss"] for row in result.history]
     assert losses[-1] < 0.6 * losses[0], losses
@@ -374,10 +374,12 @@ def test_training_reduces_loss_and_validates(dataset: Path) -> None:
 
 def test_training_is_deterministic(dataset: Path) -> None:
     frames = load_frames(find_sequences([dataset / "seq_1000"]))
-    cfg = TrainConfig(epochs=2, batch_size=2, seed=7)  # with augmentation
+    cfg = TrainConfig(num_threads=1, epochs=2, batch_size=2, seed=7)  # with augmentation
     a = train(frames, cfg, TINY).net.state_dict()
     b = train(frames, cfg, TINY).net.state_dict()
-    c = train(frames, TrainConfig(epochs=2, batch_size=2, seed=8), TINY).net.state_dict()
+    c = train(
+        frames, TrainConfig(num_threads=1, epochs=2, batch_size=2, seed=8), TINY
+    ).net.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
@@ -386,7 +388,9 @@ def test_finetune_freezes_batchnorm_and_keeps_parent(dataset: Path, tiny_checkpo
     parent, _ = load_checkpoint(tiny_checkpoint)
     before = {k: v.clone() for k, v in parent.state_dict().items()}
     frames = load_frames(find_sequences([dataset / "seq_1002"]))
-    result = train(frames, TrainConfig.finetune_defaults(epochs=1, batch_size=3), init=parent)
+    result = train(
+        frames, TrainConfig.finetune_defaults(epochs=1, batch_size=3, num_threads=1), init=parent
+    )
     after = result.net.state_dict()
     assert all(torch.equal(before[k], parent.state_dict()[k]) for k in before)  # copy trained
     stats = [k for k in after if k.endswith("running_mean")]
@@ -439,6 +443,8 @@ def test_depth_source_and_export_round_trip(
         load_depth_source(tmp_path / "missing.pt")
     with pytest.raises(InvalidInputError, match="RGB"):
         src(Frame(index=0, T_world_from_cam=np.eye(4)))
+    eager_src = load_depth_source(tiny_checkpoint, script=False)
+    np.testing.assert_allclose(eager_src(frame), depth, rtol=1e-5, equal_nan=True)
     metrics = evaluate_source(src, [seq])
     assert metrics.num_frames == len(seq) and 0 <= metrics.abs_rel < 10
 
@@ -532,6 +538,8 @@ def test_cli_train_finetune_export_evaluate(
             "8,12,16",
             "--blocks",
             "1,1,1",
+            "--threads",
+            "1",
             "--val-fraction",
             "0.34",
             "--frame-step",
@@ -560,6 +568,8 @@ def test_cli_train_finetune_export_evaluate(
             "1",
             "--batch-size",
             "3",
+            "--threads",
+            "1",
         ]
     )
     assert rc == 0
