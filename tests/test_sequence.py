@@ -99,3 +99,15 @@ def test_depth_checks() -> None:
         check_depth_mm(np.zeros((4, 4)), "d")
     out = check_depth_mm(np.array([[0.0, 10.0]]), "d")
     assert np.isnan(out[0, 0]) and out[0, 1] == 10.0
+
+
+def test_atomic_files_get_normal_permissions(tmp_path) -> None:
+    import os
+    import stat
+
+    from chisel.atomic import atomic_write_text
+
+    atomic_write_text(tmp_path / "a.txt", "x")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == 0o666 & ~umask
