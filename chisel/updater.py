@@ -103,6 +103,11 @@ class UpdateConfig:
     """About this many pixels (a regular stride) per frame in per-frame registration."""
     sequence_points: int = 500
     """About this many pixels per frame in the sequence-level registration stages."""
+    allow_unused_step: bool = False
+    """When no frame of a step can be used (every registration failed): False = raise
+    :class:`EmptyResultError`; True = keep the model as it was (the step counter still
+    advances) and say so in the report. Benchmarks use True so one bad step is scored as
+    "no update" instead of stopping the run."""
 
     def __post_init__(self) -> None:
         if self.max_points < 100 or self.sequence_points < 100:
@@ -361,9 +366,10 @@ class ChiselUpdater:
             raise RuntimeError("end_step() without begin_step()")
         if not any(f.used for f in self._frames):
             reasons = sorted({f.reason for f in self._frames})[:5]
-            raise EmptyResultError(
-                f"no frame of the step could be used ({len(self._frames)} frames; reasons: {reasons})"
-            )
+            message = f"no frame of the step could be used ({len(self._frames)} frames; reasons: {reasons})"
+            if not self.cfg.allow_unused_step:
+                raise EmptyResultError(message)
+            log.warning("%s: the model is kept as it was", message)
         self.model = _with_step(self.model, self.model.step + 1)
         rep = StepReport(self.model.step, self._frames, self._seq_reg, _config_dict(self.cfg))
         self._renderer = None

@@ -190,6 +190,18 @@ def test_skipped_frames_are_reported_never_fused(scene: dict) -> None:
     # All frames garbage: the step fails and says why.
     with pytest.raises(EmptyResultError, match="no frame"):
         update_step(model, cam, fr, CallableDepth(lambda f: garbage, metric=True))
+    # Benchmarks may keep the model instead: unchanged, and the report says no frame was used.
+    kept, rep = update_step(
+        model,
+        cam,
+        fr,
+        CallableDepth(lambda f: garbage, metric=True),
+        UpdateConfig(allow_unused_step=True),
+    )
+    assert rep.frames_used == [] and len(rep.frames_skipped) == len(fr)
+    assert kept.tsdf.tobytes() == model.tsdf.tobytes()
+    assert kept.weight.tobytes() == model.weight.tobytes()
+    assert kept.step == model.step + 1
 
 
 def test_bad_input_raises_before_anything_is_fused(scene: dict) -> None:

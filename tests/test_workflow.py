@@ -33,8 +33,9 @@ def test_lint_is_clean(tmp_path: Path) -> None:
 @pytest.mark.parametrize("target", ["all", "table", "seqlen", "posenoise", "depthnoise", "report"])
 @pytest.mark.parametrize("configfile", ["config.yaml", "smoke.yaml"])
 def test_dry_run_of_every_target(tmp_path: Path, target: str, configfile: str) -> None:
+    # The target goes first: --configfile takes several values.
     r = run(
-        ["-n", "--cores", "2", "--configfile", str(ROOT / "config" / configfile), target], tmp_path
+        [target, "-n", "--cores", "2", "--configfile", str(ROOT / "config" / configfile)], tmp_path
     )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
 

@@ -124,6 +124,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--depth-noise-seed", type=int, default=0, help="seed of --depth-noise-mm")
     p.add_argument("--min-fitness", type=float, default=0.3, help="registration fitness floor")
     p.add_argument("--seed", type=int, default=0, help="RANSAC seed")
+    p.add_argument(
+        "--allow-unused-step",
+        action="store_true",
+        help="when no frame registers, keep the model unchanged (and report it) instead of failing",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_update)
 
@@ -240,6 +245,7 @@ def _cmd_update(args: argparse.Namespace) -> int:
         change=ChangeConfig(threshold_mm=args.threshold_mm),
         registration=RegistrationConfig(min_fitness=args.min_fitness, seed=args.seed),
         register=not args.no_registration,
+        allow_unused_step=args.allow_unused_step,
     )
     model = TsdfModel.load(args.model)
     seq = Sequence(args.sequence)

@@ -112,7 +112,8 @@ def update_inputs(wc):
 
 def update_options(wc, input):
     depth, registration = METHOD_SPECS[wc.method]
-    opts = [f"--threshold-mm {UC.get('threshold_mm', 1.0)}"]
+    # A step whose frames all fail registration is scored as "no update", not a crash.
+    opts = [f"--threshold-mm {UC.get('threshold_mm', 1.0)}", "--allow-unused-step"]
     opts.append(f"--depth-source sequence:{input.pred}" if depth == "network" else "--depth-source gt")
     if not registration:
         opts.append("--no-registration")
