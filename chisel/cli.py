@@ -27,7 +27,8 @@ new endoscopic sequences, and carve it out of the model.
 
 Units are millimetres; poses are T_world_from_cam (world = CT frame) with OpenCV camera
 axes (+x right, +y down, +z forward); depth is z-depth in mm (0 = invalid on disk).
-File formats: see docs/formats.md (sequence folders, model .npz files).
+File formats: README.md "On-disk contracts" (sequence folders) and docs/updater.md
+(model .npz files).
 """
 
 

@@ -19,7 +19,7 @@ from chisel.undistort import Circle
 log = logging.getLogger(__name__)
 
 _FORMATS = """\
-Output: a sequence folder (docs/formats.md): poses T_world_from_cam in mm, OpenCV camera
+Output: a sequence folder (README.md, "On-disk contracts"): poses T_world_from_cam in mm, OpenCV camera
 axes (+x right, +y down, +z forward), frames undistorted to a pinhole camera (zero
 distortion) unless --no-undistort, the endoscope's field stop as camera_mask.png.
 
