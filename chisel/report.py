@@ -682,11 +682,10 @@ def make_step_panel(
         else frame.T_world_from_cam_true
     )
     gt = frame.depth_mm
-    est = None
-    if estimated_depth_mm is not None:
-        est = np.asarray(estimated_depth_mm, dtype=np.float32)
-        both = np.isfinite(est) & (np.isfinite(gt) if gt is not None else True)
-        if gt is not None and both.any():
+    est = None if estimated_depth_mm is None else np.asarray(estimated_depth_mm, np.float32)
+    if est is not None and gt is not None:
+        both = np.isfinite(est) & np.isfinite(gt)
+        if both.any():
             est = est * np.float32(np.median(gt[both]) / np.median(est[both]))
     return StepPanel(
         step=step,
