@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
@@ -288,32 +289,102 @@ class SurfaceIndex:
 
         Misses have distance inf and index ``len(points)`` (as scipy's cKDTree).
         """
-        y = np.asarray(points_mm, dtype=np.float64)
+        y = np.ascontiguousarray(points_mm, dtype=np.float64)
         n = len(self.points)
         if self._grid is None or dist_mm > self.max_dist_mm:
             return self.tree.query(y, distance_upper_bound=dist_mm)
         origin, voxel, shape = self._grid
-        ijk = np.rint((y - origin) / voxel).astype(np.int64)
-        inside = np.all((ijk >= 0) & (ijk < np.array(shape)), axis=1)
-        flat = np.ravel_multi_index(ijk[inside].T, shape)
-        cur = self._cache[flat]
-        unknown = cur == -2
+        shape_a = np.asarray(shape, dtype=np.int64)
+        d, idx = _grid_nearest(y, origin, voxel, shape_a, self._cache, self.points, dist_mm)
+        unknown = idx == -2
         if unknown.any():
-            u = np.unique(flat[unknown])
+            # First visit of these voxels: one tree search per voxel centre, memoised.
+            ijk = np.rint((y[unknown] - origin) / voxel).astype(np.int64)
+            u = np.unique(np.ravel_multi_index(ijk.T, shape))
             centres = np.stack(np.unravel_index(u, shape), axis=1) * voxel + origin
             reach = self.max_dist_mm + voxel
             _, nn = self.tree.query(centres, distance_upper_bound=reach)
             self._cache[u] = np.where(nn >= n, -1, nn).astype(np.int32)
-            cur = self._cache[flat]
-        idx = np.full(len(y), n, dtype=np.int64)
-        idx[inside] = np.where(cur >= 0, cur, n)
-        d = np.full(len(y), np.inf)
-        hit = idx < n
-        d[hit] = np.linalg.norm(y[hit] - self.points[idx[hit]], axis=1)
-        miss = d > dist_mm
-        d[miss] = np.inf
-        idx[miss] = n
+            d, idx = _grid_nearest(y, origin, voxel, shape_a, self._cache, self.points, dist_mm)
+        idx[idx < 0] = n
         return d, idx
+
+
+@numba.njit(cache=True)
+def _grid_nearest(y, origin, voxel, shape, cache, points, dist_mm):
+    """Memoised nearest vertex per voxel: (distance (N,), index (N,)); index -1 = no vertex
+    within reach or outside the grid, -2 = voxel not looked up yet (distance inf)."""
+    n = y.shape[0]
+    d = np.full(n, np.inf)
+    idx = np.full(n, -1, dtype=np.int64)
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    for a in range(n):
+        i = int(np.rint((y[a, 0] - origin[0]) / voxel))
+        j = int(np.rint((y[a, 1] - origin[1]) / voxel))
+        k = int(np.rint((y[a, 2] - origin[2]) / voxel))
+        if i < 0 or j < 0 or k < 0 or i >= nx or j >= ny or k >= nz:
+            continue
+        c = cache[(i * ny + j) * nz + k]
+        if c == -2:
+            idx[a] = -2
+            continue
+        if c < 0:
+            continue
+        dx = y[a, 0] - points[c, 0]
+        dy = y[a, 1] - points[c, 1]
+        dz = y[a, 2] - points[c, 2]
+        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dd <= dist_mm:
+            d[a] = dd
+            idx[a] = c
+    return d, idx
+
+
+@numba.njit(cache=True)
+def _normal_equations(y_rel, c_new, idx, points, normals, k, with_scale):
+    """Tukey-weighted point-to-plane normal equations of one ICP iteration.
+
+    Unknowns (rotation vector (3), centre shift (3)[, log scale]); returns (A, b, sum of
+    weights, number of correspondences). ``idx >= len(points)`` marks a miss.
+    """
+    m = 7 if with_scale else 6
+    A = np.zeros((m, m))
+    b = np.zeros(m)
+    J = np.zeros(m)
+    npts = points.shape[0]
+    wsum = 0.0
+    count = 0
+    for a in range(y_rel.shape[0]):
+        c = idx[a]
+        if c >= npts:
+            continue
+        count += 1
+        xr, yr_, zr = y_rel[a, 0], y_rel[a, 1], y_rel[a, 2]
+        n0, n1, n2 = normals[c, 0], normals[c, 1], normals[c, 2]
+        r = ((xr + c_new[0] - points[c, 0]) * n0 + (yr_ + c_new[1] - points[c, 1]) * n1
+             + (zr + c_new[2] - points[c, 2]) * n2)  # fmt: skip
+        if abs(r) >= k:
+            continue
+        t = 1.0 - (r / k) ** 2
+        w = t * t
+        J[0] = yr_ * n2 - zr * n1
+        J[1] = zr * n0 - xr * n2
+        J[2] = xr * n1 - yr_ * n0
+        J[3] = n0
+        J[4] = n1
+        J[5] = n2
+        if with_scale:
+            J[6] = xr * n0 + yr_ * n1 + zr * n2
+        for p in range(m):
+            wp = w * J[p]
+            b[p] -= wp * r
+            for q in range(p, m):
+                A[p, q] += wp * J[q]
+        wsum += w
+    for p in range(m):
+        for q in range(p):
+            A[p, q] = A[q, p]
+    return A, b, wsum, count
 
 
 def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
@@ -396,20 +467,13 @@ def icp_similarity(
             it += 1
             y_rel = sigma * rel @ R.T
             y = y_rel + c_new
-            d, idx = surface.query(y, dist)
-            ok = np.isfinite(d)
-            if ok.sum() < 10:
+            _, idx = surface.query(y, dist)
+            A, b, wsum, count = _normal_equations(
+                y_rel, c_new, idx, surface.points, surface.normals, k, estimate_scale
+            )
+            if count < 10:
                 break
-            yr, q, n = y_rel[ok], surface.points[idx[ok]], surface.normals[idx[ok]]
-            r = np.einsum("ij,ij->i", y[ok] - q, n)
-            w = np.where(np.abs(r) < k, (1.0 - (r / k) ** 2) ** 2, 0.0)
-            cols = [np.cross(yr, n), n]
-            if estimate_scale:
-                cols.append(np.einsum("ij,ij->i", yr, n)[:, None])
-            J = np.concatenate(cols, axis=1)
-            A = (J * w[:, None]).T @ J
-            b = -(J * w[:, None]).T @ r
-            lam = cfg.pose_prior * float(w.sum()) if prior else 0.0
+            lam = cfg.pose_prior * wsum if prior else 0.0
             A[3:6, 3:6] += lam * np.eye(3)
             b[3:6] += lam * (c_prior - c_new)
             if prior:

@@ -103,6 +103,9 @@ class UpdateConfig:
     """About this many pixels (a regular stride) per frame in per-frame registration."""
     sequence_points: int = 500
     """About this many pixels per frame in the sequence-level registration stages."""
+    hand_eye_frames: int = 20
+    """Batch mode: at most this many frames, evenly spaced, estimate the hand-eye
+    correction F (a robust median: more frames add time, not accuracy)."""
     allow_unused_step: bool = False
     """When no frame of a step can be used (every registration failed): False = raise
     :class:`EmptyResultError`; True = keep the model as it was (the step counter still
@@ -112,6 +115,8 @@ class UpdateConfig:
     def __post_init__(self) -> None:
         if self.max_points < 100 or self.sequence_points < 100:
             raise InvalidInputError("max_points", "use at least 100 points per frame")
+        if self.hand_eye_frames < 1:
+            raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")
 
 
 # ---------------------------------------------------------------------------- rendering
@@ -332,14 +337,16 @@ class ChiselUpdater:
         hand_eye: np.ndarray | None = None,
         fixed: bool = False,
         sequence_registration: dict | None = None,
+        renderer: ModelRenderer | None = None,
     ) -> None:
         """Start a surgical step: M_t is the model as it is now.
 
         hand_eye : (4, 4) camera-side correction F (``T_corrected = T_tracked @ F``) to
         start from, e.g. from a sequence-level registration; fixed : use F as is for
-        every frame (batch) instead of re-estimating it from the frames (streaming).
+        every frame (batch) instead of re-estimating it from the frames (streaming);
+        renderer : a :class:`ModelRenderer` of this same model, if one was already built.
         """
-        self._renderer = ModelRenderer(self.model)
+        self._renderer = ModelRenderer(self.model) if renderer is None else renderer
         self._reset = np.zeros(self.model.shape, dtype=np.uint8)
         self._frames = []
         if hand_eye is not None:
@@ -391,12 +398,14 @@ class ChiselUpdater:
         estimate: np.ndarray | None = None,
         render_mm: np.ndarray | None = None,
         keep_maps: bool = False,
+        scale0: float | None = None,
     ) -> FrameReport:
         """Detect the change in one frame and carve it into the model.
 
         frame : tracked pose plus image and/or depth; estimate : (H, W) float32 depth up to
         scale (None = ask the depth source); render_mm : (H, W) float32 M_t at the
-        tracked pose if already rendered. Returns the frame's report; a frame that fails
+        tracked pose if already rendered; scale0 : the estimate's scale solved against
+        ``render_mm`` if already known (batch). Returns the frame's report; a frame that fails
         registration is skipped (``used = False``) and leaves the model untouched.
         """
         renderer = self.renderer
@@ -405,7 +414,7 @@ class ChiselUpdater:
         R = renderer.render(self.camera, T) if render_mm is None else render_mm
         rep = FrameReport(index=frame.index, used=False)
         try:
-            m_prime, scale, reg_res = self._m_prime(T, E, R)
+            m_prime, scale, reg_res = self._m_prime(T, E, R, scale0)
         except EmptyResultError as exc:
             rep.reason = str(exc)
             self._frames.append(rep)
@@ -439,12 +448,17 @@ class ChiselUpdater:
         return rep
 
     def _m_prime(
-        self, T: np.ndarray, E: np.ndarray, R: np.ndarray
+        self, T: np.ndarray, E: np.ndarray, R: np.ndarray, scale0: float | None = None
     ) -> tuple[np.ndarray, float, RegistrationResult | None]:
         """M' (after imputation), the scale, and the registration (None when off)."""
         cfg = self.cfg
         scale_free = _scale_free(cfg, self.depth_source)
-        s0 = solve_scale(R, E, cfg.change.threshold_mm)[0] if scale_free else 1.0
+        if not scale_free:
+            s0 = 1.0
+        elif scale0 is not None:
+            s0 = float(scale0)
+        else:
+            s0 = solve_scale(R, E, cfg.change.threshold_mm)[0]
         if not cfg.register:
             return impute((s0 * E).astype(np.float32), R), s0, None
         rcfg = cfg.registration
@@ -557,26 +571,41 @@ def update_step(
     estimates = [validate_estimate(depth_source(f), f, camera, metric) for f in frames]
     upd = ChiselUpdater(model, camera, depth_source, cfg)
     renders: list[np.ndarray | None] = [None] * len(frames)
+    scales: list[float | None] = [None] * len(frames)
     F = None
     seq_reg = None
+    renderer = None
     if cfg.register:
         renderer = ModelRenderer(model)
-        renders = [renderer.render(camera, T) for T in poses]
+        renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
+        if _scale_free(cfg, depth_source):
+            # Solved once per frame; every stage below starts from the same scales.
+            scales = [_try_scale(R, E, cfg) for R, E in zip(renders, estimates, strict=True)]
+        else:
+            scales = [1.0] * len(frames)
         C = np.eye(4)
         if cfg.sequence_ransac:
-            C, seq_reg = _sequence_registration(
-                renderer, camera, poses, estimates, renders, cfg, _scale_free(cfg, depth_source)
-            )
+            C, seq_reg = _sequence_registration(renderer, camera, poses, estimates, scales, cfg)
         F, he = _hand_eye(
-            renderer, camera, poses, estimates, renders, C, cfg, is_metric(depth_source)
+            renderer, camera, poses, estimates, scales, C, cfg, _scale_free(cfg, depth_source)
         )
         seq_reg = {**(seq_reg or {}), "hand_eye": he}
-    upd.begin_step(hand_eye=F, fixed=F is not None, sequence_registration=seq_reg)
-    items = list(zip(frames, estimates, renders, strict=True))
-    for f, E, R in progress(items) if progress is not None else items:
-        upd.process(f, estimate=E, render_mm=R, keep_maps=keep_maps)
+    upd.begin_step(
+        hand_eye=F, fixed=F is not None, sequence_registration=seq_reg, renderer=renderer
+    )
+    items = list(zip(frames, estimates, renders, scales, strict=True))
+    for f, E, R, s in progress(items) if progress is not None else items:
+        upd.process(f, estimate=E, render_mm=R, keep_maps=keep_maps, scale0=s)
     report = upd.end_step()
     return upd.model, report
+
+
+def _try_scale(render_mm: np.ndarray, estimate: np.ndarray, cfg: UpdateConfig) -> float | None:
+    """The estimate's scale against the render, or None when too few pixels overlap."""
+    try:
+        return solve_scale(render_mm, estimate, cfg.change.threshold_mm)[0]
+    except EmptyResultError:
+        return None
 
 
 def _hand_eye(
@@ -584,25 +613,26 @@ def _hand_eye(
     camera: Camera,
     poses: list[np.ndarray],
     estimates: list[np.ndarray],
-    renders: list[np.ndarray],
+    scales: list[float | None],
     C_seq: np.ndarray,
     cfg: UpdateConfig,
-    metric: bool,
+    scale_free: bool,
 ) -> tuple[np.ndarray | None, dict]:
     """Camera-side correction F: robust mean of per-frame ICP corrections from ``C_seq``.
 
     A world-side correction cannot represent a constant hand-eye error for frames with
-    different orientations; F can. Frames are registered without a prior (coarser point
-    sampling), and the median of their camera-side corrections is F.
+    different orientations; F can. Up to ``cfg.hand_eye_frames`` frames, evenly spaced
+    over those with a scale, are registered without a prior (coarser point sampling),
+    and the median of their camera-side corrections is F.
     """
     rcfg = cfg.registration
-    scale_free = cfg.solve_scale == "always" or (cfg.solve_scale == "auto" and not metric)
+    usable = [i for i, s in enumerate(scales) if s is not None]
+    if len(usable) > cfg.hand_eye_frames:
+        pick = np.linspace(0, len(usable) - 1, cfg.hand_eye_frames).round().astype(int)
+        usable = [usable[i] for i in pick]
     Fs = []
-    for T, E, R in zip(poses, estimates, renders, strict=True):
-        try:
-            s0 = solve_scale(R, E, cfg.change.threshold_mm)[0] if scale_free else 1.0
-        except EmptyResultError:
-            continue
+    for i in usable:
+        T, E, s0 = poses[i], estimates[i], float(scales[i])
         src = _points(camera, s0 * E, T, cfg.sequence_points)
         if len(src) < 10:
             continue
@@ -623,18 +653,18 @@ def _sequence_registration(
     camera: Camera,
     poses: list[np.ndarray],
     estimates: list[np.ndarray],
-    renders: list[np.ndarray],
+    scales: list[float | None],
     cfg: UpdateConfig,
-    scale_free: bool,
 ) -> tuple[np.ndarray, dict]:
-    """RANSAC + ICP of the whole step's scaled estimates onto the model surface."""
-    pts = []
-    for T, E, R in zip(poses, estimates, renders, strict=True):
-        try:
-            s = solve_scale(R, E, cfg.change.threshold_mm)[0] if scale_free else 1.0
-        except EmptyResultError:
-            continue
-        pts.append(_points(camera, s * E, T, cfg.sequence_points))
+    """RANSAC + ICP of the whole step's scaled estimates onto the model surface.
+
+    scales : per frame, the estimate's scale (None = no overlap with the render: skipped).
+    """
+    pts = [
+        _points(camera, s * E, T, cfg.sequence_points)
+        for T, E, s in zip(poses, estimates, scales, strict=True)
+        if s is not None
+    ]
     if not pts:
         return np.eye(4), {"ok": False, "reason": "no frame overlaps the model render"}
     src = np.concatenate(pts)
