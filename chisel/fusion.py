@@ -16,12 +16,20 @@ d = +1 (free space is carved, so removed tissue can disappear later) -- and are 
 with ``D <- (W D + w d) / (W + w)``, ``W <- W + w``. Colour, when given, is averaged with
 the same weights inside the truncation band only.
 
-Speed: the kernel visits only the voxels of the axis-aligned sub-box around the camera
-frustum (camera centre to the farthest valid depth plus the truncation) and runs in
-parallel over voxel columns. CPU only: there is no GPU path.
+Speed: the image plane is cut into tiles (about ``TILE_PX`` pixels, half-open rectangles
+of undistorted normalised coordinates, so each voxel belongs to exactly one tile
+whatever the distortion). A tile's sub-frustum runs only to the farthest depth among
+the active pixels its voxels can project to (depth > 0 and weight > 0) plus the
+truncation, and tiles without active pixel are skipped: the voxels behind the surface
+and, in the masked update, those outside the change mask are never visited. Per tile,
+the kernel walks voxel columns along the grid axis closest to the optical axis, finds
+each column's interval inside the tile's pyramid analytically and runs in parallel over
+tiles (disjoint voxel sets, no write conflict). CPU only: there is no GPU path.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -29,6 +37,36 @@ import numpy as np
 from chisel.errors import InvalidInputError, PoseError
 from chisel.geometry import Camera, check_rigid, invert_rigid
 from chisel.model import TsdfModel
+
+
+@numba.njit(cache=True)
+def _clean_depth(depth):
+    # No fastmath here: this is where NaN and inf are told apart from depths; <= 0 out.
+    out = np.empty(depth.shape, dtype=np.float32)
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            d = depth[v, u]
+            out[v, u] = d if (d > 0.0 and d < np.inf) else 0.0
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _tile_depth(depth, pix_w, offsets, pixels):
+    # Per tile, the largest depth among the active pixels that a voxel of the tile may
+    # project to (0 = none): ``pixels[offsets[t]:offsets[t + 1]]`` lists them (flat).
+    d_flat = depth.reshape(-1)
+    w_flat = pix_w.reshape(-1)
+    n = offsets.shape[0] - 1
+    out = np.zeros(n, dtype=np.float32)
+    for t in numba.prange(n):
+        m = np.float32(0.0)
+        for j in range(offsets[t], offsets[t + 1]):
+            p = pixels[j]
+            d = d_flat[p]
+            if d > m and w_flat[p] > 0.0:
+                m = d
+        out[t] = m
+    return out
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -44,161 +82,195 @@ def _integrate_kernel(
     rgb,
     R,
     t,
+    strides,
+    n_col,
     fx,
     fy,
     cx,
     cy,
     dist,
     r2_max,
-    box,
-    trunc_mm,
-    xb,
-    z_near,
+    grid,
+    nx,
+    ny,
+    tiles,
     z_far,
+    Ri,
+    ti,
+    n_a,
+    n_b,
+    trunc_mm,
     lateral_px,
     use_lateral,
 ):
     # Inputs are sanitised by the caller: depth <= 0 means invalid (no NaN reaches here,
-    # which keeps fastmath's no-NaN assumption true).
+    # which keeps fastmath's no-NaN assumption true). The volume arrays are flat; R's
+    # columns and ``strides`` are ordered (a, b, c) with c the column axis, so voxel
+    # (ia, ib, k) is at ia * strides[0] + ib * strides[1] + k * strides[2] and its camera
+    # coordinates are R @ (ia, ib, k) + t.
     H, W = depth.shape
-    i0, i1, j0, j1, k0, k1 = box[0], box[1], box[2], box[3], box[4], box[5]
-    nj = j1 - j0
-    ncol = (i1 - i0) * nj
     k1_, k2_, p1_, p2_, k3_ = dist[0], dist[1], dist[2], dist[3], dist[4]
     distorted = (k1_ != 0.0) or (k2_ != 0.0) or (p1_ != 0.0) or (p2_ != 0.0) or (k3_ != 0.0)
     inv_trunc = 1.0 / trunc_mm
-    counts = np.zeros(ncol, dtype=np.int64)
-    for col in numba.prange(ncol):
-        i = i0 + col // nj
-        j = j0 + col % nj
-        bx = R[0, 0] * i + R[0, 1] * j + t[0]
-        by = R[1, 0] * i + R[1, 1] * j + t[1]
-        bz = R[2, 0] * i + R[2, 1] * j + t[2]
-        # Along the column, X, Y, Z are linear in k; the frustum (the image's normalised
-        # bounds, z_near < Z < z_far) is an intersection of half-lines a + b k >= 0, so
-        # the visible k-interval is found without visiting the voxels outside it.
-        lo = float(k0)
-        hi = float(k1) - 1.0
-        for h in range(6):
-            if h == 0:
-                a = bz - z_near
-                b = R[2, 2]
-            elif h == 1:
-                a = z_far - bz
-                b = -R[2, 2]
-            elif h == 2:
-                a = bx - xb[0] * bz
-                b = R[0, 2] - xb[0] * R[2, 2]
-            elif h == 3:
-                a = xb[1] * bz - bx
-                b = xb[1] * R[2, 2] - R[0, 2]
-            elif h == 4:
-                a = by - xb[2] * bz
-                b = R[1, 2] - xb[2] * R[2, 2]
-            else:
-                a = xb[3] * bz - by
-                b = xb[3] * R[2, 2] - R[1, 2]
-            if b > 1e-12:
-                lo = max(lo, -a / b)
-            elif b < -1e-12:
-                hi = min(hi, -a / b)
-            elif a < 0.0:
-                hi = lo - 1.0
-        if hi < lo:
-            counts[col] = 0
-            continue
-        ka = max(k0, int(np.floor(lo)) - 1)
-        kb = min(k1, int(np.ceil(hi)) + 2)
+    x0, y0, tw, th = grid[0], grid[1], grid[2], grid[3]
+    inv_tw = 1.0 / tw
+    inv_th = 1.0 / th
+    sa, sb, sc = strides[0], strides[1], strides[2]
+    n_tiles = tiles.shape[0]
+    counts = np.zeros(n_tiles, dtype=np.int64)
+    for it in numba.prange(n_tiles):
+        tx = tiles[it, 0]
+        ty = tiles[it, 1]
+        # The tile's rectangle of normalised coordinates, padded by a hair so that the
+        # analytic interval below never drops a voxel of the tile to rounding; the exact
+        # (half-open) membership test is done per voxel.
+        xl = x0 + tx * tw - 1e-7
+        xh = x0 + (tx + 1) * tw + 1e-7
+        yl = y0 + ty * th - 1e-7
+        yh = y0 + (ty + 1) * th + 1e-7
+        zf = z_far[it]
+        # The tile's pyramid (camera centre, 4 corner rays at z_far) in voxel coordinates
+        # (a, b); the columns that cross it are those whose (a, b) lies in the convex hull
+        # of these 5 points, i.e. per row a between the extreme crossings of the 10
+        # segments joining them.
+        pa = np.empty(5)
+        pb = np.empty(5)
+        pa[0] = ti[0]
+        pb[0] = ti[1]
+        for q in range(4):
+            X = (xl if q % 2 == 0 else xh) * zf
+            Y = (yl if q < 2 else yh) * zf
+            pa[q + 1] = Ri[0, 0] * X + Ri[0, 1] * Y + Ri[0, 2] * zf + ti[0]
+            pb[q + 1] = Ri[1, 0] * X + Ri[1, 1] * Y + Ri[1, 2] * zf + ti[1]
+        ia0 = max(0, int(np.ceil(pa.min() - 1e-6)))
+        ia1 = min(n_a, int(np.floor(pa.max() + 1e-6)) + 1)
         n = 0
-        for k in range(ka, kb):
-            zc = bz + R[2, 2] * k
-            if zc <= 1e-3:
+        for ia in range(ia0, ia1):
+            blo = np.inf
+            bhi = -np.inf
+            for p in range(5):
+                for q in range(p, 5):
+                    da = pa[q] - pa[p]
+                    if p == q or abs(da) < 1e-12:
+                        if abs(pa[p] - ia) <= 1e-6:
+                            blo = min(blo, pb[p], pb[q])
+                            bhi = max(bhi, pb[p], pb[q])
+                        continue
+                    s = (ia - pa[p]) / da
+                    if s < -1e-9 or s > 1.0 + 1e-9:
+                        continue
+                    bb = pb[p] + s * (pb[q] - pb[p])
+                    blo = min(blo, bb)
+                    bhi = max(bhi, bb)
+            if bhi < blo:
                 continue
-            xc = (bx + R[0, 2] * k) / zc
-            yc = (by + R[1, 2] * k) / zc
-            r2 = xc * xc + yc * yc
-            if r2 > r2_max:
-                continue
-            if distorted:
-                radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_))
-                xd = xc * radial + 2.0 * p1_ * xc * yc + p2_ * (r2 + 2.0 * xc * xc)
-                yd = yc * radial + p1_ * (r2 + 2.0 * yc * yc) + 2.0 * p2_ * xc * yc
-            else:
-                xd = xc
-                yd = yc
-            uf = fx * xd + cx + 0.5
-            vf = fy * yd + cy + 0.5
-            if uf < 0.0 or vf < 0.0:
-                continue
-            u = int(uf)
-            v = int(vf)
-            if u >= W or v >= H:
-                continue
-            w = pix_w[v, u]
-            if w <= 0.0:
-                continue
-            dm = depth[v, u]
-            if dm <= 0.0:
-                continue
-            sd = dm - zc
-            if sd < -trunc_mm:
-                continue
-            if use_lateral and sd > 0.0:
-                # Projective distance overestimates free space beside a silhouette: bound it
-                # by the lateral distance (at this depth) to the nearest pixel left alone.
-                lat = lateral_px[v, u] * zc / fx
-                if sd > lat:
-                    sd = lat
-            d = sd * inv_trunc
-            if d > 1.0:
-                d = 1.0
-            if use_reset and reset[i, j, k] == 0:
-                reset[i, j, k] = 1
-                weight[i, j, k] = 0.0
-            W0 = weight[i, j, k]
-            W1 = W0 + w
-            tsdf[i, j, k] = (W0 * tsdf[i, j, k] + w * d) / W1
-            weight[i, j, k] = W1
-            if use_color and d < 1.0:
-                for c in range(3):
-                    val = (W0 * color[i, j, k, c] + w * rgb[v, u, c]) / W1
-                    color[i, j, k, c] = np.uint8(min(255.0, max(0.0, val + 0.5)))
-            n += 1
-        counts[col] = n
+            ib0 = max(0, int(np.ceil(blo - 1e-6)))
+            ib1 = min(n_b, int(np.floor(bhi + 1e-6)) + 1)
+            for ib in range(ib0, ib1):
+                bx = R[0, 0] * ia + R[0, 1] * ib + t[0]
+                by = R[1, 0] * ia + R[1, 1] * ib + t[1]
+                bz = R[2, 0] * ia + R[2, 1] * ib + t[2]
+                # Along the column, X, Y, Z are linear in k; the tile's sub-frustum (its
+                # rectangle, 1e-3 < Z < z_far) is an intersection of half-lines
+                # a + b k >= 0, so the k-interval is found without visiting the rest.
+                lo = 0.0
+                hi = n_col - 1.0
+                for h in range(6):
+                    if h == 0:
+                        a = bz - 1e-3
+                        b = R[2, 2]
+                    elif h == 1:
+                        a = zf - bz
+                        b = -R[2, 2]
+                    elif h == 2:
+                        a = bx - xl * bz
+                        b = R[0, 2] - xl * R[2, 2]
+                    elif h == 3:
+                        a = xh * bz - bx
+                        b = xh * R[2, 2] - R[0, 2]
+                    elif h == 4:
+                        a = by - yl * bz
+                        b = R[1, 2] - yl * R[2, 2]
+                    else:
+                        a = yh * bz - by
+                        b = yh * R[2, 2] - R[1, 2]
+                    if b > 1e-12:
+                        lo = max(lo, -a / b)
+                    elif b < -1e-12:
+                        hi = min(hi, -a / b)
+                    elif a < 0.0:
+                        hi = lo - 1.0
+                if hi < lo:
+                    continue
+                ka = int(np.ceil(lo - 1e-6))
+                kb = int(np.floor(hi + 1e-6)) + 1
+                base = ia * sa + ib * sb
+                for k in range(ka, kb):
+                    zc = bz + R[2, 2] * k
+                    if zc <= 1e-3:
+                        continue
+                    xc = (bx + R[0, 2] * k) / zc
+                    yc = (by + R[1, 2] * k) / zc
+                    # Each voxel belongs to the one tile its (xc, yc) falls in: no voxel
+                    # is visited by two tiles, whatever the lens distortion.
+                    gx = (xc - x0) * inv_tw
+                    gy = (yc - y0) * inv_th
+                    if gx < 0.0 or gy < 0.0 or gx >= nx or gy >= ny:
+                        continue
+                    if int(gx) != tx or int(gy) != ty:
+                        continue
+                    r2 = xc * xc + yc * yc
+                    if r2 > r2_max:
+                        continue
+                    if distorted:
+                        radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_))
+                        xd = xc * radial + 2.0 * p1_ * xc * yc + p2_ * (r2 + 2.0 * xc * xc)
+                        yd = yc * radial + p1_ * (r2 + 2.0 * yc * yc) + 2.0 * p2_ * xc * yc
+                    else:
+                        xd = xc
+                        yd = yc
+                    uf = fx * xd + cx + 0.5
+                    vf = fy * yd + cy + 0.5
+                    if uf < 0.0 or vf < 0.0:
+                        continue
+                    u = int(uf)
+                    v = int(vf)
+                    if u >= W or v >= H:
+                        continue
+                    w = pix_w[v, u]
+                    if w <= 0.0:
+                        continue
+                    dm = depth[v, u]
+                    if dm <= 0.0:
+                        continue
+                    sd = dm - zc
+                    if sd < -trunc_mm:
+                        continue
+                    if use_lateral and sd > 0.0:
+                        # Projective distance overestimates free space beside a silhouette:
+                        # bound it by the lateral distance (at this depth) to the nearest
+                        # pixel left alone.
+                        lat = lateral_px[v, u] * zc / fx
+                        if sd > lat:
+                            sd = lat
+                    d = sd * inv_trunc
+                    if d > 1.0:
+                        d = 1.0
+                    idx = base + k * sc
+                    if use_reset and reset[idx] == 0:
+                        reset[idx] = 1
+                        weight[idx] = 0.0
+                    W0 = weight[idx]
+                    W1 = W0 + w
+                    tsdf[idx] = (W0 * tsdf[idx] + w * d) / W1
+                    weight[idx] = W1
+                    if use_color and d < 1.0:
+                        for c in range(3):
+                            val = (W0 * color[idx, c] + w * rgb[v, u, c]) / W1
+                            color[idx, c] = np.uint8(min(255.0, max(0.0, val + 0.5)))
+                    n += 1
+        counts[it] = n
     return counts.sum()
-
-
-def frustum_box(
-    model: TsdfModel, camera: Camera, T_world_from_cam: np.ndarray, z_far_mm: float
-) -> np.ndarray | None:
-    """Voxel index sub-box ``[i0, i1, j0, j1, k0, k1]`` (int64, half-open) around a frustum.
-
-    The frustum runs from the camera centre to ``z_far_mm`` through the image border
-    (distortion included). Returns None when it misses the grid.
-    """
-    rays = camera.rays_cam()
-    border = np.concatenate([rays[0], rays[-1], rays[:, 0], rays[:, -1]], axis=0)
-    pts_cam = np.concatenate([np.zeros((1, 3)), border * z_far_mm], axis=0)
-    T_voxel_from_cam = invert_rigid_scaled(model.T_world_from_voxel) @ T_world_from_cam
-    pts = pts_cam @ T_voxel_from_cam[:3, :3].T + T_voxel_from_cam[:3, 3]
-    lo = np.floor(pts.min(axis=0)).astype(np.int64)
-    hi = np.ceil(pts.max(axis=0)).astype(np.int64) + 1
-    shape = np.array(model.shape)
-    lo = np.clip(lo, 0, shape)
-    hi = np.clip(hi, 0, shape)
-    if np.any(hi <= lo):
-        return None
-    return np.array([lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]], dtype=np.int64)
-
-
-def invert_rigid_scaled(T_world_from_voxel: np.ndarray) -> np.ndarray:
-    """Inverse of an axis-aligned scaled transform (voxel grid placement): T_voxel_from_world."""
-    T = np.asarray(T_world_from_voxel, dtype=np.float64)
-    s = T[0, 0]
-    out = np.eye(4)
-    out[:3, :3] = np.eye(3) / s
-    out[:3, 3] = -T[:3, 3] / s
-    return out
 
 
 def check_pose_in_model(model: TsdfModel, T_world_from_cam: np.ndarray, source: str) -> np.ndarray:
@@ -217,33 +289,95 @@ def check_pose_in_model(model: TsdfModel, T_world_from_cam: np.ndarray, source: 
     return T
 
 
-_BOUNDS_CACHE: dict[tuple, tuple[float, np.ndarray]] = {}
+TILE_PX = 16
+"""Nominal tile size in pixels (see :func:`_camera_tiles`), chosen by measurement."""
 
 
-def _camera_bounds(camera: Camera) -> tuple[float, np.ndarray]:
-    """(max r^2 of the image's normalised rays, [x_min, x_max, y_min, y_max]); cached.
+@dataclass(frozen=True)
+class _TileGrid:
+    """A camera's image plane cut into tiles in undistorted normalised coordinates."""
 
-    The bounds reach half a pixel beyond the border rays; with distortion they come from
-    the undistorted rays of every pixel, so they hold whatever the lens model.
+    r2_max: float
+    """Largest x^2 + y^2 of the image's normalised rays (plus 2 %)."""
+    grid: np.ndarray
+    """(4,) float64 x0, y0 (the frustum's lower bounds) and the tile width, height."""
+    nx: int
+    """Number of tile columns."""
+    ny: int
+    """Number of tile rows."""
+    offsets: np.ndarray
+    """(nx * ny + 1,) int64: tile t (= ty * nx + tx) owns ``pixels[offsets[t]:offsets[t + 1]]``."""
+    pixels: np.ndarray
+    """(n,) int32 flat indices of the pixels whose ray lies within one pitch of each tile."""
+
+
+_TILES_CACHE: dict[tuple, _TileGrid] = {}
+
+
+def _camera_tiles(camera: Camera, tile_px: int = TILE_PX) -> _TileGrid:
+    """The tiling of ``camera``'s frustum; cached per camera.
+
+    The tiles are half-open rectangles of normalised coordinates (x, y) = (X/Z, Y/Z)
+    that partition the frustum's bounds, about ``tile_px`` pixels wide. The bounds reach
+    half a pixel pitch beyond the border rays (the pitch taken from the undistorted rays
+    of every pixel, so they hold whatever the lens model). A voxel projecting into pixel p
+    has its ray within half a pitch (in u and in v) of p's ray; every pixel is therefore
+    assigned to all the tiles within one full pitch of its ray, which bounds the depth a
+    tile's voxels can meet whatever the distortion.
     """
-    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
-    hit = _BOUNDS_CACHE.get(key)
-    if hit is None:
-        rays = camera.rays_cam()
-        r2_max = float(((rays[..., 0] ** 2 + rays[..., 1] ** 2).max()) * 1.02 + 1e-9)
-        pad_x, pad_y = 0.5 / camera.fx, 0.5 / camera.fy
-        xb = np.array(
-            [
-                rays[..., 0].min() - pad_x,
-                rays[..., 0].max() + pad_x,
-                rays[..., 1].min() - pad_y,
-                rays[..., 1].max() + pad_y,
-            ]
-        )
-        if len(_BOUNDS_CACHE) > 64:
-            _BOUNDS_CACHE.clear()
-        hit = _BOUNDS_CACHE[key] = (r2_max, xb)
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), tile_px)
+    hit = _TILES_CACHE.get(key)
+    if hit is not None:
+        return hit
+    rays = camera.rays_cam()
+    x, y = rays[..., 0], rays[..., 1]
+    r2_max = float(((x**2 + y**2).max()) * 1.02 + 1e-9)
+    # Pitch: the largest step of x (of y) between neighbouring pixels, along u plus along v.
+    pitch_x = np.abs(np.diff(x, axis=1)).max(initial=0.0) + np.abs(np.diff(x, axis=0)).max(
+        initial=0.0
+    )
+    pitch_y = np.abs(np.diff(y, axis=1)).max(initial=0.0) + np.abs(np.diff(y, axis=0)).max(
+        initial=0.0
+    )
+    pitch_x = max(pitch_x, 1.0 / camera.fx)
+    pitch_y = max(pitch_y, 1.0 / camera.fy)
+    x0, x1 = x.min() - 0.5 * pitch_x, x.max() + 0.5 * pitch_x
+    y0, y1 = y.min() - 0.5 * pitch_y, y.max() + 0.5 * pitch_y
+    nx = max(1, -(-camera.width // tile_px))
+    ny = max(1, -(-camera.height // tile_px))
+    tw, th = (x1 - x0) / nx, (y1 - y0) / ny
+
+    def span(c: np.ndarray, c0: float, step: float, pad: float, n: int):
+        lo = np.clip(np.floor((c - pad - c0) / step), 0, n - 1).astype(np.int32)
+        hi = np.clip(np.floor((c + pad - c0) / step), 0, n - 1).astype(np.int32)
+        return lo, hi
+
+    tx_lo, tx_hi = span(x, x0, tw, pitch_x, nx)
+    ty_lo, ty_hi = span(y, y0, th, pitch_y, ny)
+    # (pixel, tile) pairs: the pitch is below a tile, so a pixel meets at most 2 x 2 tiles.
+    flat = np.arange(x.size, dtype=np.int32)
+    pairs_p, pairs_t = [], []
+    for ty in (ty_lo.ravel(), ty_hi.ravel()):
+        for tx in (tx_lo.ravel(), tx_hi.ravel()):
+            pairs_p.append(flat)
+            pairs_t.append(ty.astype(np.int64) * nx + tx)
+    pix = np.concatenate(pairs_p)
+    til = np.concatenate(pairs_t)
+    uniq = np.unique(til * x.size + pix)  # drops the duplicates, sorted by tile then pixel
+    til, pix = uniq // x.size, (uniq % x.size).astype(np.int32)
+    offsets = np.searchsorted(til, np.arange(nx * ny + 1)).astype(np.int64)
+    hit = _TileGrid(r2_max, np.array([x0, y0, tw, th]), nx, ny, offsets, pix)
+    if len(_TILES_CACHE) > 64:
+        _TILES_CACHE.clear()
+    _TILES_CACHE[key] = hit
     return hit
+
+
+def _flat(a: np.ndarray, name: str) -> np.ndarray:
+    """A flat view of ``a`` (updated in place by the kernel); C order required."""
+    if not a.flags.c_contiguous:
+        raise InvalidInputError(name, "must be a C-contiguous array (updated in place)")
+    return a.reshape(-1)
 
 
 def integrate(
@@ -281,22 +415,14 @@ def integrate(
     T = check_rigid(T_world_from_cam, "T_world_from_cam")
     depth = np.asarray(depth_mm, dtype=np.float32)
     camera.check_image(depth, "depth_mm")
-    depth = np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
-    np.maximum(depth, 0.0, out=depth)
+    depth = _clean_depth(depth)
     if pixel_weight is None:
         pix_w = np.ones(depth.shape, dtype=np.float32)
     else:
         camera.check_image(pixel_weight, "pixel_weight")
-        pix_w = np.asarray(pixel_weight, dtype=np.float32)
+        pix_w = np.ascontiguousarray(pixel_weight, dtype=np.float32)
         if not np.all(np.isfinite(pix_w)) or np.any(pix_w < 0):
             raise InvalidInputError("pixel_weight", "weights must be finite and >= 0")
-    active = (depth > 0) & (pix_w > 0)
-    if not active.any():
-        return 0
-    z_far = float(depth[active].max()) + model.trunc_mm
-    box = frustum_box(model, camera, T, z_far)
-    if box is None:
-        return 0
     use_color = model.color is not None and rgb is not None
     if use_color:
         camera.check_image(rgb, "rgb")
@@ -322,30 +448,50 @@ def integrate(
         lateral = np.zeros((1, 1), dtype=np.float32)
     # Voxel index -> camera frame in one affine map (rotation block scaled by the voxel).
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
-    r2_max, xb = _camera_bounds(camera)
+    # Columns run along the voxel axis closest to the optical axis: a tile's thin pyramid
+    # then has a small footprint of columns.
+    c = int(np.argmax(np.abs(T_cam_from_voxel[2, :3])))
+    axes = np.array([a for a in range(3) if a != c] + [c])
+    tiles = _camera_tiles(camera, TILE_PX)
+    tile_depth = _tile_depth(depth, pix_w, tiles.offsets, tiles.pixels).reshape(tiles.ny, tiles.nx)
+    shape = np.array(model.shape)
+    ty, tx = np.nonzero(tile_depth)
+    if len(tx) == 0:
+        return 0
+    work = np.stack([tx, ty], axis=1).astype(np.int64)
+    z_far = tile_depth[ty, tx].astype(np.float64) + float(model.trunc_mm) + 1e-6
+    T_voxel_from_cam = np.linalg.inv(T_cam_from_voxel)
+    strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)[axes]
     n = _integrate_kernel(
-        model.tsdf,
-        model.weight,
-        color,
+        _flat(model.tsdf, "model.tsdf"),
+        _flat(model.weight, "model.weight"),
+        _flat(color, "model.color").reshape(-1, 3),
         use_color,
-        reset_arr,
+        _flat(reset_arr, "reset"),
         use_reset,
         depth,
         pix_w,
         rgb_arr,
-        np.ascontiguousarray(T_cam_from_voxel[:3, :3]),
+        np.ascontiguousarray(T_cam_from_voxel[:3, :3][:, axes]),
         np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
+        strides,
+        int(shape[c]),
         camera.fx,
         camera.fy,
         camera.cx,
         camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64),
-        r2_max,
-        box,
-        float(model.trunc_mm),
-        xb,
-        1e-3,
+        tiles.r2_max,
+        tiles.grid,
+        tiles.nx,
+        tiles.ny,
+        work,
         z_far,
+        np.ascontiguousarray(T_voxel_from_cam[:3, :3][axes]),
+        np.ascontiguousarray(T_voxel_from_cam[:3, 3][axes]),
+        int(shape[axes[0]]),
+        int(shape[axes[1]]),
+        float(model.trunc_mm),
         lateral,
         use_lateral,
     )
