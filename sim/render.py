@@ -2,14 +2,18 @@
 
 A :class:`MeshRenderer` loads one mesh into one Mitsuba scene (principled BSDF over the
 procedural 3D texture, a spot light at the scope tip, a perspective sensor on the
-undistorted :class:`~sim.mitsuba_camera.RenderGrid`) and then only updates the sensor and
-light transforms through ``mi.traverse`` per frame, so drjit reuses its compiled kernels.
+undistorted :class:`~sim.mitsuba_camera.RenderGrid`) and then only updates poses per
+frame, so drjit reuses its compiled kernels.
 
-Per frame it returns RGB (direct lighting, ``spp`` samples, remapped onto the raw
-distorted grid, then the sensor model of :mod:`sim.imaging`), z-depth in mm and the
-validity mask. Depth on the JIT variants is Mitsuba's ray intersection along the exact
-ray of every raw pixel centre (exact under distortion); on ``scalar_rgb`` it is the
-sensor's ``depth`` AOV at pixel centres, remapped with nearest neighbour.
+Per frame it returns RGB (direct lighting, ``spp`` samples, then the sensor model of
+:mod:`sim.imaging`), z-depth in mm and the validity mask. On the JIT variants colour is
+traced by :class:`~sim.spot_direct.SpotDirectIntegrator` along the exact rays of the raw
+pixels inside the field stop, and depth is Mitsuba's ray intersection along the exact
+ray of every raw pixel centre (both exact under distortion). On ``scalar_rgb`` colour is
+``mi.render`` with Mitsuba's ``direct`` integrator on the render grid, remapped onto the
+raw grid, and depth the sensor's ``depth`` AOV at pixel centres, remapped with nearest
+neighbour; :meth:`MeshRenderer.render_radiance_reference` keeps that path on every
+variant as the reference the fast one is tested against.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from sim.mitsuba_camera import (
     z_depth_from_ray_length,
 )
 from sim.phantom import check_mesh
+from sim.spot_direct import SpotDirectIntegrator
 from sim.variant import load_mitsuba
 
 
@@ -155,6 +160,11 @@ class MeshRenderer:
             np.eye(3), np.asarray(cfg.light.offset_mm, dtype=np.float64)
         )
         self._depth_sensor = None
+        self._direct = None
+        if self.jit and not self.depth_only:
+            self._direct = SpotDirectIntegrator(
+                mi, self.scene, self.mesh.bsdf(), self.camera, self.field_stop, cfg.light, spp
+            )
 
     def _sensor_dict(
         self, sampler: dict, pixel_format: str, grid: RenderGrid | None = None
@@ -247,6 +257,20 @@ class MeshRenderer:
     def render_radiance(self, T_world_from_cam: np.ndarray, seed: int = 0) -> np.ndarray:
         """Linear radiance on the raw camera grid, before the sensor model.
 
+        T_world_from_cam : (4, 4) float64, mm. Returns (H, W, 3) float32 (0 outside the
+        field stop on the JIT variants).
+        """
+        if self.depth_only:
+            raise ValueError("MeshRenderer: built with depth_only=True, cannot render RGB")
+        T = check_rigid(T_world_from_cam, "T_world_from_cam")
+        if self._direct is None:
+            return self.render_radiance_reference(T, seed)
+        return self._direct.render(T, seed=int(seed))
+
+    def render_radiance_reference(self, T_world_from_cam: np.ndarray, seed: int = 0) -> np.ndarray:
+        """Radiance from ``mi.render`` with Mitsuba's ``direct`` integrator (the reference).
+
+        Rendered on the undistorted render grid and remapped (bilinear) onto the raw grid.
         T_world_from_cam : (4, 4) float64, mm. Returns (H, W, 3) float32.
         """
         if self.depth_only:
