@@ -39,11 +39,11 @@ from chisel.geometry import Camera, check_rigid, invert_rigid
 from chisel.model import TsdfModel
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def _clean_depth(depth):
     # No fastmath here: this is where NaN and inf are told apart from depths; <= 0 out.
     out = np.empty(depth.shape, dtype=np.float32)
-    for v in range(depth.shape[0]):
+    for v in numba.prange(depth.shape[0]):
         for u in range(depth.shape[1]):
             d = depth[v, u]
             out[v, u] = d if (d > 0.0 and d < np.inf) else 0.0
@@ -51,7 +51,7 @@ def _clean_depth(depth):
 
 
 @numba.njit(parallel=True, cache=True)
-def _tile_depth(depth, pix_w, offsets, pixels):
+def _tile_depth(depth, pix_w, use_weight, offsets, pixels):
     # Per tile, the largest depth among the active pixels that a voxel of the tile may
     # project to (0 = none): ``pixels[offsets[t]:offsets[t + 1]]`` lists them (flat).
     d_flat = depth.reshape(-1)
@@ -63,10 +63,43 @@ def _tile_depth(depth, pix_w, offsets, pixels):
         for j in range(offsets[t], offsets[t + 1]):
             p = pixels[j]
             d = d_flat[p]
-            if d > m and w_flat[p] > 0.0:
+            if d > m and (not use_weight or w_flat[p] > 0.0):
                 m = d
         out[t] = m
     return out
+
+
+@numba.njit(cache=True)
+def _plan(tile_depth, nx, pad_mm, n_buckets):
+    # The active tiles (depth bound > 0) as [tx, ty] with z_far = bound + pad_mm, dealt to
+    # ``n_buckets`` buckets (one per thread) in decreasing cost, snake order, so that the
+    # buckets cost about the same; a tile's cost is taken as its pyramid's volume, z_far^3
+    # (the tiles span equal normalised areas). A static split of the tiles in image order
+    # would hand one thread the near half of the scene.
+    act = np.flatnonzero(tile_depth > 0.0)
+    n = act.shape[0]
+    z = tile_depth[act].astype(np.float64) + pad_mm
+    rank = np.argsort(-z)
+    bucket = np.empty(n, dtype=np.int64)
+    for r in range(n):
+        lap = r // n_buckets
+        pos = r % n_buckets
+        bucket[rank[r]] = pos if lap % 2 == 0 else n_buckets - 1 - pos
+    offsets = np.zeros(n_buckets + 1, dtype=np.int64)
+    for i in range(n):
+        offsets[bucket[i] + 1] += 1
+    for b in range(n_buckets):
+        offsets[b + 1] += offsets[b]
+    fill = offsets[:-1].copy()
+    work = np.empty((n, 2), dtype=np.int64)
+    z_far = np.empty(n, dtype=np.float64)
+    for i in range(n):
+        j = fill[bucket[i]]
+        fill[bucket[i]] += 1
+        work[j, 0] = act[i] % nx
+        work[j, 1] = act[i] // nx
+        z_far[j] = z[i]
+    return work, z_far, offsets
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -79,6 +112,7 @@ def _integrate_kernel(
     use_reset,
     depth,
     pix_w,
+    use_weight,
     rgb,
     R,
     t,
@@ -95,6 +129,7 @@ def _integrate_kernel(
     ny,
     tiles,
     z_far,
+    bucket_offsets,
     Ri,
     ti,
     n_a,
@@ -118,158 +153,161 @@ def _integrate_kernel(
     sa, sb, sc = strides[0], strides[1], strides[2]
     n_tiles = tiles.shape[0]
     counts = np.zeros(n_tiles, dtype=np.int64)
-    for it in numba.prange(n_tiles):
-        tx = tiles[it, 0]
-        ty = tiles[it, 1]
-        # The tile's rectangle of normalised coordinates, padded by a hair so that the
-        # analytic interval below never drops a voxel of the tile to rounding; the exact
-        # (half-open) membership test is done per voxel.
-        xl = x0 + tx * tw - 1e-7
-        xh = x0 + (tx + 1) * tw + 1e-7
-        yl = y0 + ty * th - 1e-7
-        yh = y0 + (ty + 1) * th + 1e-7
-        zf = z_far[it]
-        # The tile's pyramid (camera centre, 4 corner rays at z_far) in voxel coordinates
-        # (a, b); the columns that cross it are those whose (a, b) lies in the convex hull
-        # of these 5 points, i.e. per row a between the extreme crossings of the 10
-        # segments joining them.
-        pa = np.empty(5)
-        pb = np.empty(5)
-        pa[0] = ti[0]
-        pb[0] = ti[1]
-        for q in range(4):
-            X = (xl if q % 2 == 0 else xh) * zf
-            Y = (yl if q < 2 else yh) * zf
-            pa[q + 1] = Ri[0, 0] * X + Ri[0, 1] * Y + Ri[0, 2] * zf + ti[0]
-            pb[q + 1] = Ri[1, 0] * X + Ri[1, 1] * Y + Ri[1, 2] * zf + ti[1]
-        ia0 = max(0, int(np.ceil(pa.min() - 1e-6)))
-        ia1 = min(n_a, int(np.floor(pa.max() + 1e-6)) + 1)
-        n = 0
-        for ia in range(ia0, ia1):
-            blo = np.inf
-            bhi = -np.inf
-            for p in range(5):
-                for q in range(p, 5):
-                    da = pa[q] - pa[p]
-                    if p == q or abs(da) < 1e-12:
-                        if abs(pa[p] - ia) <= 1e-6:
-                            blo = min(blo, pb[p], pb[q])
-                            bhi = max(bhi, pb[p], pb[q])
-                        continue
-                    s = (ia - pa[p]) / da
-                    if s < -1e-9 or s > 1.0 + 1e-9:
-                        continue
-                    bb = pb[p] + s * (pb[q] - pb[p])
-                    blo = min(blo, bb)
-                    bhi = max(bhi, bb)
-            if bhi < blo:
-                continue
-            ib0 = max(0, int(np.ceil(blo - 1e-6)))
-            ib1 = min(n_b, int(np.floor(bhi + 1e-6)) + 1)
-            for ib in range(ib0, ib1):
-                bx = R[0, 0] * ia + R[0, 1] * ib + t[0]
-                by = R[1, 0] * ia + R[1, 1] * ib + t[1]
-                bz = R[2, 0] * ia + R[2, 1] * ib + t[2]
-                # Along the column, X, Y, Z are linear in k; the tile's sub-frustum (its
-                # rectangle, 1e-3 < Z < z_far) is an intersection of half-lines
-                # a + b k >= 0, so the k-interval is found without visiting the rest.
-                lo = 0.0
-                hi = n_col - 1.0
-                for h in range(6):
-                    if h == 0:
-                        a = bz - 1e-3
-                        b = R[2, 2]
-                    elif h == 1:
-                        a = zf - bz
-                        b = -R[2, 2]
-                    elif h == 2:
-                        a = bx - xl * bz
-                        b = R[0, 2] - xl * R[2, 2]
-                    elif h == 3:
-                        a = xh * bz - bx
-                        b = xh * R[2, 2] - R[0, 2]
-                    elif h == 4:
-                        a = by - yl * bz
-                        b = R[1, 2] - yl * R[2, 2]
-                    else:
-                        a = yh * bz - by
-                        b = yh * R[2, 2] - R[1, 2]
-                    if b > 1e-12:
-                        lo = max(lo, -a / b)
-                    elif b < -1e-12:
-                        hi = min(hi, -a / b)
-                    elif a < 0.0:
-                        hi = lo - 1.0
-                if hi < lo:
+    # Tiles come in one bucket per thread, balanced by the caller (a static split of
+    # tiles in image order would give one thread the near half of the scene).
+    for bk in numba.prange(bucket_offsets.shape[0] - 1):
+        for it in range(bucket_offsets[bk], bucket_offsets[bk + 1]):
+            tx = tiles[it, 0]
+            ty = tiles[it, 1]
+            # The tile's rectangle of normalised coordinates, padded by a hair so that the
+            # analytic interval below never drops a voxel of the tile to rounding; the exact
+            # (half-open) membership test is done per voxel.
+            xl = x0 + tx * tw - 1e-7
+            xh = x0 + (tx + 1) * tw + 1e-7
+            yl = y0 + ty * th - 1e-7
+            yh = y0 + (ty + 1) * th + 1e-7
+            zf = z_far[it]
+            # The tile's pyramid (camera centre, 4 corner rays at z_far) in voxel coordinates
+            # (a, b); the columns that cross it are those whose (a, b) lies in the convex hull
+            # of these 5 points, i.e. per row a between the extreme crossings of the 10
+            # segments joining them.
+            pa = np.empty(5)
+            pb = np.empty(5)
+            pa[0] = ti[0]
+            pb[0] = ti[1]
+            for q in range(4):
+                X = (xl if q % 2 == 0 else xh) * zf
+                Y = (yl if q < 2 else yh) * zf
+                pa[q + 1] = Ri[0, 0] * X + Ri[0, 1] * Y + Ri[0, 2] * zf + ti[0]
+                pb[q + 1] = Ri[1, 0] * X + Ri[1, 1] * Y + Ri[1, 2] * zf + ti[1]
+            ia0 = max(0, int(np.ceil(pa.min() - 1e-6)))
+            ia1 = min(n_a, int(np.floor(pa.max() + 1e-6)) + 1)
+            n = 0
+            for ia in range(ia0, ia1):
+                blo = np.inf
+                bhi = -np.inf
+                for p in range(5):
+                    for q in range(p, 5):
+                        da = pa[q] - pa[p]
+                        if p == q or abs(da) < 1e-12:
+                            if abs(pa[p] - ia) <= 1e-6:
+                                blo = min(blo, pb[p], pb[q])
+                                bhi = max(bhi, pb[p], pb[q])
+                            continue
+                        s = (ia - pa[p]) / da
+                        if s < -1e-9 or s > 1.0 + 1e-9:
+                            continue
+                        bb = pb[p] + s * (pb[q] - pb[p])
+                        blo = min(blo, bb)
+                        bhi = max(bhi, bb)
+                if bhi < blo:
                     continue
-                ka = int(np.ceil(lo - 1e-6))
-                kb = int(np.floor(hi + 1e-6)) + 1
-                base = ia * sa + ib * sb
-                for k in range(ka, kb):
-                    zc = bz + R[2, 2] * k
-                    if zc <= 1e-3:
+                ib0 = max(0, int(np.ceil(blo - 1e-6)))
+                ib1 = min(n_b, int(np.floor(bhi + 1e-6)) + 1)
+                for ib in range(ib0, ib1):
+                    bx = R[0, 0] * ia + R[0, 1] * ib + t[0]
+                    by = R[1, 0] * ia + R[1, 1] * ib + t[1]
+                    bz = R[2, 0] * ia + R[2, 1] * ib + t[2]
+                    # Along the column, X, Y, Z are linear in k; the tile's sub-frustum (its
+                    # rectangle, 1e-3 < Z < z_far) is an intersection of half-lines
+                    # a + b k >= 0, so the k-interval is found without visiting the rest.
+                    lo = 0.0
+                    hi = n_col - 1.0
+                    for h in range(6):
+                        if h == 0:
+                            a = bz - 1e-3
+                            b = R[2, 2]
+                        elif h == 1:
+                            a = zf - bz
+                            b = -R[2, 2]
+                        elif h == 2:
+                            a = bx - xl * bz
+                            b = R[0, 2] - xl * R[2, 2]
+                        elif h == 3:
+                            a = xh * bz - bx
+                            b = xh * R[2, 2] - R[0, 2]
+                        elif h == 4:
+                            a = by - yl * bz
+                            b = R[1, 2] - yl * R[2, 2]
+                        else:
+                            a = yh * bz - by
+                            b = yh * R[2, 2] - R[1, 2]
+                        if b > 1e-12:
+                            lo = max(lo, -a / b)
+                        elif b < -1e-12:
+                            hi = min(hi, -a / b)
+                        elif a < 0.0:
+                            hi = lo - 1.0
+                    if hi < lo:
                         continue
-                    xc = (bx + R[0, 2] * k) / zc
-                    yc = (by + R[1, 2] * k) / zc
-                    # Each voxel belongs to the one tile its (xc, yc) falls in: no voxel
-                    # is visited by two tiles, whatever the lens distortion.
-                    gx = (xc - x0) * inv_tw
-                    gy = (yc - y0) * inv_th
-                    if gx < 0.0 or gy < 0.0 or gx >= nx or gy >= ny:
-                        continue
-                    if int(gx) != tx or int(gy) != ty:
-                        continue
-                    r2 = xc * xc + yc * yc
-                    if r2 > r2_max:
-                        continue
-                    if distorted:
-                        radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_))
-                        xd = xc * radial + 2.0 * p1_ * xc * yc + p2_ * (r2 + 2.0 * xc * xc)
-                        yd = yc * radial + p1_ * (r2 + 2.0 * yc * yc) + 2.0 * p2_ * xc * yc
-                    else:
-                        xd = xc
-                        yd = yc
-                    uf = fx * xd + cx + 0.5
-                    vf = fy * yd + cy + 0.5
-                    if uf < 0.0 or vf < 0.0:
-                        continue
-                    u = int(uf)
-                    v = int(vf)
-                    if u >= W or v >= H:
-                        continue
-                    w = pix_w[v, u]
-                    if w <= 0.0:
-                        continue
-                    dm = depth[v, u]
-                    if dm <= 0.0:
-                        continue
-                    sd = dm - zc
-                    if sd < -trunc_mm:
-                        continue
-                    if use_lateral and sd > 0.0:
-                        # Projective distance overestimates free space beside a silhouette:
-                        # bound it by the lateral distance (at this depth) to the nearest
-                        # pixel left alone.
-                        lat = lateral_px[v, u] * zc / fx
-                        if sd > lat:
-                            sd = lat
-                    d = sd * inv_trunc
-                    if d > 1.0:
-                        d = 1.0
-                    idx = base + k * sc
-                    if use_reset and reset[idx] == 0:
-                        reset[idx] = 1
-                        weight[idx] = 0.0
-                    W0 = weight[idx]
-                    W1 = W0 + w
-                    tsdf[idx] = (W0 * tsdf[idx] + w * d) / W1
-                    weight[idx] = W1
-                    if use_color and d < 1.0:
-                        for c in range(3):
-                            val = (W0 * color[idx, c] + w * rgb[v, u, c]) / W1
-                            color[idx, c] = np.uint8(min(255.0, max(0.0, val + 0.5)))
-                    n += 1
-        counts[it] = n
+                    ka = int(np.ceil(lo - 1e-6))
+                    kb = int(np.floor(hi + 1e-6)) + 1
+                    base = ia * sa + ib * sb
+                    for k in range(ka, kb):
+                        zc = bz + R[2, 2] * k
+                        if zc <= 1e-3:
+                            continue
+                        xc = (bx + R[0, 2] * k) / zc
+                        yc = (by + R[1, 2] * k) / zc
+                        # Each voxel belongs to the one tile its (xc, yc) falls in: no voxel
+                        # is visited by two tiles, whatever the lens distortion.
+                        gx = (xc - x0) * inv_tw
+                        gy = (yc - y0) * inv_th
+                        if gx < 0.0 or gy < 0.0 or gx >= nx or gy >= ny:
+                            continue
+                        if int(gx) != tx or int(gy) != ty:
+                            continue
+                        r2 = xc * xc + yc * yc
+                        if r2 > r2_max:
+                            continue
+                        if distorted:
+                            radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_))
+                            xd = xc * radial + 2.0 * p1_ * xc * yc + p2_ * (r2 + 2.0 * xc * xc)
+                            yd = yc * radial + p1_ * (r2 + 2.0 * yc * yc) + 2.0 * p2_ * xc * yc
+                        else:
+                            xd = xc
+                            yd = yc
+                        uf = fx * xd + cx + 0.5
+                        vf = fy * yd + cy + 0.5
+                        if uf < 0.0 or vf < 0.0:
+                            continue
+                        u = int(uf)
+                        v = int(vf)
+                        if u >= W or v >= H:
+                            continue
+                        w = pix_w[v, u] if use_weight else 1.0
+                        if w <= 0.0:
+                            continue
+                        dm = depth[v, u]
+                        if dm <= 0.0:
+                            continue
+                        sd = dm - zc
+                        if sd < -trunc_mm:
+                            continue
+                        if use_lateral and sd > 0.0:
+                            # Projective distance overestimates free space beside a silhouette:
+                            # bound it by the lateral distance (at this depth) to the nearest
+                            # pixel left alone.
+                            lat = lateral_px[v, u] * zc / fx
+                            if sd > lat:
+                                sd = lat
+                        d = sd * inv_trunc
+                        if d > 1.0:
+                            d = 1.0
+                        idx = base + k * sc
+                        if use_reset and reset[idx] == 0:
+                            reset[idx] = 1
+                            weight[idx] = 0.0
+                        W0 = weight[idx]
+                        W1 = W0 + w
+                        tsdf[idx] = (W0 * tsdf[idx] + w * d) / W1
+                        weight[idx] = W1
+                        if use_color and d < 1.0:
+                            for c in range(3):
+                                val = (W0 * color[idx, c] + w * rgb[v, u, c]) / W1
+                                color[idx, c] = np.uint8(min(255.0, max(0.0, val + 0.5)))
+                        n += 1
+            counts[it] = n
     return counts.sum()
 
 
@@ -416,8 +454,9 @@ def integrate(
     depth = np.asarray(depth_mm, dtype=np.float32)
     camera.check_image(depth, "depth_mm")
     depth = _clean_depth(depth)
-    if pixel_weight is None:
-        pix_w = np.ones(depth.shape, dtype=np.float32)
+    use_weight = pixel_weight is not None
+    if not use_weight:
+        pix_w = np.ones((1, 1), dtype=np.float32)  # not read
     else:
         camera.check_image(pixel_weight, "pixel_weight")
         pix_w = np.ascontiguousarray(pixel_weight, dtype=np.float32)
@@ -453,13 +492,13 @@ def integrate(
     c = int(np.argmax(np.abs(T_cam_from_voxel[2, :3])))
     axes = np.array([a for a in range(3) if a != c] + [c])
     tiles = _camera_tiles(camera, TILE_PX)
-    tile_depth = _tile_depth(depth, pix_w, tiles.offsets, tiles.pixels).reshape(tiles.ny, tiles.nx)
-    shape = np.array(model.shape)
-    ty, tx = np.nonzero(tile_depth)
-    if len(tx) == 0:
+    tile_depth = _tile_depth(depth, pix_w, use_weight, tiles.offsets, tiles.pixels)
+    work, z_far, bucket_offsets = _plan(
+        tile_depth, tiles.nx, float(model.trunc_mm) + 1e-6, numba.get_num_threads()
+    )
+    if len(work) == 0:
         return 0
-    work = np.stack([tx, ty], axis=1).astype(np.int64)
-    z_far = tile_depth[ty, tx].astype(np.float64) + float(model.trunc_mm) + 1e-6
+    shape = np.array(model.shape)
     T_voxel_from_cam = np.linalg.inv(T_cam_from_voxel)
     strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)[axes]
     n = _integrate_kernel(
@@ -471,6 +510,7 @@ def integrate(
         use_reset,
         depth,
         pix_w,
+        use_weight,
         rgb_arr,
         np.ascontiguousarray(T_cam_from_voxel[:3, :3][:, axes]),
         np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
@@ -487,6 +527,7 @@ def integrate(
         tiles.ny,
         work,
         z_far,
+        bucket_offsets,
         np.ascontiguousarray(T_voxel_from_cam[:3, :3][axes]),
         np.ascontiguousarray(T_voxel_from_cam[:3, 3][axes]),
         int(shape[axes[0]]),
