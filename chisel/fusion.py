@@ -50,6 +50,17 @@ def _clean_depth(depth):
     return out
 
 
+@numba.njit(cache=True)
+def _weights_ok(pix_w):
+    # No fastmath: NaN must fail the test. (Two numpy passes cost ~0.07 ms per frame.)
+    for v in range(pix_w.shape[0]):
+        for u in range(pix_w.shape[1]):
+            w = pix_w[v, u]
+            if not (w >= 0.0 and w < np.inf):
+                return False
+    return True
+
+
 @numba.njit(parallel=True, cache=True)
 def _tile_depth(depth, pix_w, use_weight, offsets, pixels):
     # Per tile, the largest depth among the active pixels that a voxel of the tile may
@@ -100,6 +111,23 @@ def _plan(tile_depth, nx, pad_mm, n_buckets):
         work[j, 1] = act[i] // nx
         z_far[j] = z[i]
     return work, z_far, offsets
+
+
+@numba.njit(inline="always")
+def _inv(b):
+    return 1.0 / b if abs(b) > 1e-12 else 0.0
+
+
+@numba.njit(inline="always")
+def _clip(lo, hi, a, b, inv_b):
+    # Narrow [lo, hi] to the k where a + b k >= 0.
+    if b > 1e-12:
+        lo = max(lo, -a * inv_b)
+    elif b < -1e-12:
+        hi = min(hi, -a * inv_b)
+    elif a < 0.0:
+        hi = lo - 1.0
+    return lo, hi
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -167,6 +195,14 @@ def _integrate_kernel(
             yl = y0 + ty * th - 1e-7
             yh = y0 + (ty + 1) * th + 1e-7
             zf = z_far[it]
+            # Along a column the half-spaces' slopes b depend on the tile only.
+            b0 = R[2, 2]
+            b1 = -R[2, 2]
+            b2 = R[0, 2] - xl * R[2, 2]
+            b3 = xh * R[2, 2] - R[0, 2]
+            b4 = R[1, 2] - yl * R[2, 2]
+            b5 = yh * R[2, 2] - R[1, 2]
+            i0, i1, i2, i3, i4, i5 = _inv(b0), _inv(b1), _inv(b2), _inv(b3), _inv(b4), _inv(b5)
             # The tile's pyramid (camera centre, 4 corner rays at z_far) in voxel coordinates
             # (a, b); the columns that cross it are those whose (a, b) lies in the convex hull
             # of these 5 points, i.e. per row a between the extreme crossings of the 10
@@ -211,33 +247,12 @@ def _integrate_kernel(
                     # Along the column, X, Y, Z are linear in k; the tile's sub-frustum (its
                     # rectangle, 1e-3 < Z < z_far) is an intersection of half-lines
                     # a + b k >= 0, so the k-interval is found without visiting the rest.
-                    lo = 0.0
-                    hi = n_col - 1.0
-                    for h in range(6):
-                        if h == 0:
-                            a = bz - 1e-3
-                            b = R[2, 2]
-                        elif h == 1:
-                            a = zf - bz
-                            b = -R[2, 2]
-                        elif h == 2:
-                            a = bx - xl * bz
-                            b = R[0, 2] - xl * R[2, 2]
-                        elif h == 3:
-                            a = xh * bz - bx
-                            b = xh * R[2, 2] - R[0, 2]
-                        elif h == 4:
-                            a = by - yl * bz
-                            b = R[1, 2] - yl * R[2, 2]
-                        else:
-                            a = yh * bz - by
-                            b = yh * R[2, 2] - R[1, 2]
-                        if b > 1e-12:
-                            lo = max(lo, -a / b)
-                        elif b < -1e-12:
-                            hi = min(hi, -a / b)
-                        elif a < 0.0:
-                            hi = lo - 1.0
+                    lo, hi = _clip(0.0, n_col - 1.0, bz - 1e-3, b0, i0)
+                    lo, hi = _clip(lo, hi, zf - bz, b1, i1)
+                    lo, hi = _clip(lo, hi, bx - xl * bz, b2, i2)
+                    lo, hi = _clip(lo, hi, xh * bz - bx, b3, i3)
+                    lo, hi = _clip(lo, hi, by - yl * bz, b4, i4)
+                    lo, hi = _clip(lo, hi, yh * bz - by, b5, i5)
                     if hi < lo:
                         continue
                     ka = int(np.ceil(lo - 1e-6))
@@ -460,7 +475,7 @@ def integrate(
     else:
         camera.check_image(pixel_weight, "pixel_weight")
         pix_w = np.ascontiguousarray(pixel_weight, dtype=np.float32)
-        if not np.all(np.isfinite(pix_w)) or np.any(pix_w < 0):
+        if not _weights_ok(pix_w):
             raise InvalidInputError("pixel_weight", "weights must be finite and >= 0")
     use_color = model.color is not None and rgb is not None
     if use_color:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from chisel import fusion
+from chisel.errors import InvalidInputError
 from chisel.fusion import integrate
 from chisel.geometry import Camera, look_at
 from chisel.model import TsdfModel
@@ -151,3 +152,22 @@ def test_tiles_cover_the_frustum_once() -> None:
     for p in np.random.default_rng(0).integers(0, own.size, 200):
         t = own[p]
         assert p in tiles.pixels[tiles.offsets[t] : tiles.offsets[t + 1]]
+
+
+def test_bad_weight_and_layout_inputs() -> None:
+    cam = Camera.from_fov(32, 24, 60.0)
+    m = TsdfModel.empty([-8, -8, 0.25], [8, 8, 20], 0.5, 1.5)
+    depth = np.full(cam.shape, 10.0, np.float32)
+    w = np.ones(cam.shape, np.float32)
+    w[3, 4] = np.nan
+    with pytest.raises(InvalidInputError, match="pixel_weight"):
+        integrate(m, cam, np.eye(4), depth, pixel_weight=w)
+    # The kernel updates flat views in place: a non-C-ordered array is refused, not copied.
+    with pytest.raises(InvalidInputError, match="reset.*C-contiguous"):
+        integrate(m, cam, np.eye(4), depth, reset=np.asfortranarray(np.zeros(m.shape, np.uint8)))
+    f = TsdfModel(np.asfortranarray(m.tsdf), m.weight, m.T_world_from_voxel, 0.5, 1.5)
+    with pytest.raises(InvalidInputError, match="model.tsdf.*C-contiguous"):
+        integrate(f, cam, np.eye(4), depth)
+    # Valid views of the same inputs: weights given as a strided view are fine.
+    wide = np.ones((cam.height, 2 * cam.width), np.float32)[:, ::2]
+    assert integrate(m, cam, np.eye(4), depth, pixel_weight=wide) > 0
