@@ -24,7 +24,10 @@ truncation, and tiles without active pixel are skipped: the voxels behind the su
 and, in the masked update, those outside the change mask are never visited. Per tile,
 the kernel walks voxel columns along the grid axis closest to the optical axis, finds
 each column's interval inside the tile's pyramid analytically and runs in parallel over
-tiles (disjoint voxel sets, no write conflict). CPU only: there is no GPU path.
+tiles (disjoint voxel sets, no write conflict), dealt to one bucket per thread by their
+pyramid's volume. Per preoperative benchmark frame this visits ~31k voxels (~23k
+updated) instead of the ~157k of the frustum's bounding box. CPU only: there is no GPU
+path.
 """
 
 from __future__ import annotations
