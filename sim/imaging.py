@@ -2,6 +2,10 @@
 
 Rendered linear radiance -> vignetting -> auto exposure x ``exposure`` gain -> shot + read noise ->
 clip to [0, 1] -> display gamma -> uint8; pixels outside the circular field stop are black.
+:func:`sensor_image` is the numpy model (``scalar_rgb``); on the JIT variants
+``MeshRenderer.render`` runs the same model in drjit
+(:meth:`sim.spot_direct.SpotDirectIntegrator.sensor`: same tone curve, same noise
+statistics, noise drawn from a counter-based hash instead of numpy's generator).
 """
 
 from __future__ import annotations

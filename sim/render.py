@@ -9,7 +9,8 @@ Per frame it returns RGB (direct lighting, ``spp`` samples, then the sensor mode
 :mod:`sim.imaging`), z-depth in mm and the validity mask. On the JIT variants colour is
 traced by :class:`~sim.spot_direct.SpotDirectIntegrator` along the exact rays of the raw
 pixels inside the field stop, and depth is Mitsuba's ray intersection along the exact
-ray of every raw pixel centre (both exact under distortion). On ``scalar_rgb`` colour is
+ray of every raw pixel centre (both exact under distortion); :meth:`MeshRenderer.render`
+evaluates depth, colour and the sensor model (in drjit) in one launch. On ``scalar_rgb`` colour is
 ``mi.render`` with Mitsuba's ``direct`` integrator on the render grid, remapped onto the
 raw grid, and depth the sensor's ``depth`` AOV at pixel centres, remapped with nearest
 neighbour; :meth:`MeshRenderer.render_radiance_reference` keeps that path on every
@@ -55,6 +56,11 @@ class RenderedFrame:
 
 def _frame_seed(seed: int, index: int) -> int:
     return (int(seed) * 1_000_003 + int(index) * 7_919 + 17) % (2**32)
+
+
+def _noise_key(seed: int, index: int) -> int:
+    """Sensor-noise key of a frame, unrelated to its Monte Carlo sampler seed."""
+    return (_frame_seed(seed, index) * 2_654_435_761 + 0x5E45) % (2**32)
 
 
 class MeshRenderer:
@@ -162,9 +168,19 @@ class MeshRenderer:
         self._depth_sensor = None
         self._direct = None
         if self.jit and not self.depth_only:
+            assert texture is not None
             self._direct = SpotDirectIntegrator(
-                mi, self.scene, self.mesh.bsdf(), self.camera, self.field_stop, cfg.light, spp
+                mi,
+                self.scene,
+                self.camera,
+                self.field_stop,
+                cfg.light,
+                spp,
+                texture,
+                roughness=float(cfg.appearance.roughness),
+                specular=float(cfg.appearance.specular),
             )
+            self._gain_used = mi.Float(self._gain.ravel()[self.field_stop.ravel()])
 
     def _sensor_dict(
         self, sampler: dict, pixel_format: str, grid: RenderGrid | None = None
@@ -201,7 +217,15 @@ class MeshRenderer:
         H, W = self.camera.shape
         if not self.jit:
             return np.stack([self._depth_via_sensor(t) for t in T])
+        return self._z_depth(self._ray_length(T), len(T))
+
+    def _ray_length(self, T: np.ndarray) -> object:
+        """Unevaluated drjit Float: hit distance along every raw pixel's unit ray, per pose.
+
+        T : (N, 4, 4) float64 checked poses. Frame-major, then row-major pixels; inf = miss.
+        """
         mi, dr = self.mi, self.drjit
+        H, W = self.camera.shape
         n_pix = H * W
         idx = dr.arange(mi.UInt32, len(T) * n_pix)
         frame = idx // n_pix
@@ -217,8 +241,12 @@ class MeshRenderer:
         )
         o_world = mi.Point3f(*(dr.gather(mi.Float, org, frame * 3 + k) for k in range(3)))
         si = self.scene.ray_intersect_preliminary(mi.Ray3f(o_world, d_world), coherent=True)
-        t = np.array(si.t, dtype=np.float32).reshape(len(T), H, W)
-        return z_depth_from_ray_length(t, self._z_per_mm)
+        return si.t
+
+    def _z_depth(self, t: object, n_frames: int) -> np.ndarray:
+        H, W = self.camera.shape
+        t_np = np.array(t, dtype=np.float32).reshape(n_frames, H, W)
+        return z_depth_from_ray_length(t_np, self._z_per_mm)
 
     def _depth_via_sensor(self, T_world_from_cam: np.ndarray) -> np.ndarray:
         """Depth from the sensor's ``depth`` AOV (scalar_rgb has no vectorised ray queries).
@@ -292,7 +320,10 @@ class MeshRenderer:
         T_world_from_cam : (4, 4) float64 true pose, mm. ``index`` and ``seed`` seed the
         Monte Carlo sampler and the sensor noise (same seed and index -> same bytes).
         """
-        depth = self.render_depth(T_world_from_cam)[0]
+        T = check_rigid(T_world_from_cam, "T_world_from_cam")
+        if self._direct is not None:
+            return self._render_jit(T, index, seed)
+        depth = self.render_depth(T)[0]
         valid = np.isfinite(depth)
         rgb = None
         if not self.depth_only:
@@ -302,3 +333,23 @@ class MeshRenderer:
                 rad, self._gain, self.cfg.imaging, np.random.default_rng([int(seed), int(index), 5])
             )
         return RenderedFrame(depth_mm=depth, valid=valid, rgb=rgb)
+
+    def _render_jit(self, T: np.ndarray, index: int, seed: int) -> RenderedFrame:
+        """RGB-D on the JIT variants: one launch for the depth rays, colour and sensor.
+
+        The depth rays (every raw pixel centre, exact) are scheduled with the colour rays
+        of the field-stop pixels and evaluated in the same launch; the sensor model runs
+        in drjit on the used pixels (only the auto-exposure mean is a separate reduction).
+        """
+        assert self._direct is not None
+        dr = self.drjit
+        t = self._ray_length(T[None])
+        dr.schedule(t)
+        rad = self._direct.radiance(T, seed=_frame_seed(seed, index))
+        q = self._direct.sensor(rad, self._gain_used, self.cfg.imaging, _noise_key(seed, index))
+        dr.eval(t, q)
+        depth = self._z_depth(t, 1)[0]
+        H, W = self.camera.shape
+        rgb = np.zeros((H * W, 3), dtype=np.uint8)
+        rgb[self._direct.used] = np.asarray(q, dtype=np.uint32).T
+        return RenderedFrame(depth_mm=depth, valid=np.isfinite(depth), rgb=rgb.reshape(H, W, 3))

@@ -3,10 +3,10 @@
 The JIT variants render colour with this one-bounce integrator instead of ``mi.render``
 with Mitsuba's ``direct`` integrator. Per sample it does what ``direct`` does with one
 emitter sample and no BSDF sample for a single delta light: a primary ray, the spot
-light's radiance ``I * falloff(angle) / d^2``, a shadow ray, and Mitsuba's own BSDF
-(the principled BSDF over the 3D texture) evaluated for that light direction; a pixel's
-value is the mean of its ``spp`` samples (box filter). What it does not do, and why it
-is faster (docs/sim.md, "Speed"):
+light's radiance ``I * falloff(angle) / d^2``, a shadow ray, and the principled BSDF
+over the 3D colour texture evaluated for that light direction; a pixel's value is the
+mean of its ``spp`` samples (box filter). What it does not do, and why it is faster
+(docs/sim.md, "Speed"):
 
 - it traces only the raw pixels inside the circular field stop, along the camera's exact
   distorted rays, instead of an undistorted grid that is wider than the image (for the
@@ -18,7 +18,14 @@ is faster (docs/sim.md, "Speed"):
 - the shadow ray starts at the light and ends just before the surface point, so the 16
   shadow rays of a pixel leave one point in almost one direction (a coherent packet);
   with the light at the optical centre the shadow test is skipped, exactly: the primary
-  ray already proved the point visible from there.
+  ray already proved the point visible from there;
+- the BSDF and the texture are written into the kernel (:func:`principled_eval`, the
+  lobes the tissue uses, and :class:`PackedTexture`, one RGBA packet read per trilinear
+  corner) instead of calling Mitsuba's BSDF, whose ``volume`` texture reads each corner
+  channel by channel; both are tested equal to Mitsuba's to float precision;
+- the sensor model (:meth:`SpotDirectIntegrator.sensor`) runs in drjit on the traced
+  pixels, and ``MeshRenderer.render`` evaluates it and the depth rays in the same launch
+  as the colour rays.
 """
 
 from __future__ import annotations
@@ -30,7 +37,8 @@ import cv2
 import numpy as np
 
 from chisel.geometry import Camera
-from sim.config import LightConfig
+from sim.appearance import TextureVolume
+from sim.config import ImagingConfig, LightConfig
 
 
 def _undistorted_rays(camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -66,33 +74,146 @@ def pixel_ray_frames(camera: Camera, used: np.ndarray) -> tuple[np.ndarray, ...]
     return ray, d_du, d_dv
 
 
+def principled_eval(
+    dr: ModuleType,
+    n: object,
+    wi: object,
+    wo: object,
+    base: object,
+    roughness: float,
+    eta: float,
+) -> object:
+    """Mitsuba's ``principled`` BSDF ``eval`` (BSDF x cos(wo)) for the lobes the tissue uses.
+
+    Those are the dielectric specular lobe (GGX, exact dielectric Fresnel, separable Smith
+    shadowing) and the Disney diffuse lobe with retro-reflection; metallic, spec_trans,
+    spec_tint, sheen, clearcoat, flatness and anisotropy are all 0 (principled.cpp then
+    skips their code as well). Written in world space: the BSDF is isotropic, so only
+    dot products with the shading normal matter and no tangent frame is needed.
+
+    n, wi, wo : drjit Vector3f, unit shading normal, direction to the viewer, to the light.
+    base : drjit Color3f base colour. roughness : principled ``roughness``.
+    eta : relative index of refraction (``2 / (1 - sqrt(0.08 specular)) - 1``).
+    Returns a drjit Color3f, 0 unless both directions are above the shading surface.
+    """
+    alpha = max(0.001, roughness * roughness)
+    a2 = alpha * alpha
+    cos_i = dr.dot(n, wi)
+    cos_o = dr.dot(n, wo)
+    active = (cos_i > 0) & (cos_o > 0)
+    wh = dr.normalize(wi + wo)  # above the surface whenever wi and wo are
+    cos_h = dr.dot(n, wh)
+    c_ih = dr.dot(wi, wh)
+    c_oh = dr.dot(wo, wh)
+    # Dielectric Fresnel (fresnel.h) from outside: c_ih > 0 wherever the lobe is active.
+    ct = dr.safe_sqrt(1.0 - (1.0 - c_ih * c_ih) / (eta * eta))
+    a_s = (c_ih - eta * ct) / (c_ih + eta * ct)
+    a_p = (ct - eta * c_ih) / (ct + eta * c_ih)
+    F = 0.5 * (a_s * a_s + a_p * a_p)
+    # GGX D (microfacet.h): 1 / (pi a^2 ((m_x^2 + m_y^2) / a^2 + m_z^2)^2), m_xy from
+    # the tangential part of wh (no 1 - cos^2 cancellation near the normal).
+    sin2_h = dr.squared_norm(wh - n * cos_h)
+    D = 1.0 / (math.pi * a2 * dr.square(sin2_h / a2 + cos_h * cos_h))
+    D = dr.select(D * cos_h > 1e-20, D, 0.0)
+
+    def g1(cos_v: object, c_vh: object) -> object:
+        tan2 = a2 * dr.maximum(1.0 - cos_v * cos_v, 0.0) / (cos_v * cos_v)
+        g = 2.0 / (1.0 + dr.sqrt(1.0 + tan2))
+        return dr.select(c_vh * cos_v <= 0, 0.0, g)
+
+    spec = dr.select(
+        (c_ih > 0) & (c_oh > 0) & (F > 0), F * D * g1(cos_i, c_ih) * g1(cos_o, c_oh), 0.0
+    ) / (4.0 * cos_i)
+
+    def schlick_weight(c: object) -> object:
+        m = dr.clip(1.0 - c, 0.0, 1.0)
+        return dr.square(dr.square(m)) * m
+
+    Fo, Fi = schlick_weight(cos_o), schlick_weight(cos_i)
+    Rr = 2.0 * roughness * dr.square(c_oh)
+    diffuse = (1.0 - 0.5 * Fi) * (1.0 - 0.5 * Fo) + Rr * (Fo + Fi + Fo * Fi * (Rr - 1.0))
+    return dr.select(active, base * (cos_o * diffuse / math.pi) + spec, 0.0)
+
+
+class PackedTexture:
+    """The baked colour volume as one RGBA float32 buffer, trilinear like Mitsuba's grid.
+
+    Mitsuba's ``gridvolume`` (a drjit ``Texture3f``, linear filter, clamp) reads each of
+    the 8 corners channel by channel; here a corner is one packet gather of 4 floats.
+    Texel ``i`` is centred at ``(i + 0.5) / res`` of the box, indices clamp at the border.
+    """
+
+    def __init__(self, mi: ModuleType, texture: TextureVolume) -> None:
+        rgb = np.asarray(texture.rgb, dtype=np.float32)
+        rgba = np.zeros(rgb.shape[:3] + (4,), dtype=np.float32)
+        rgba[..., :3] = rgb
+        self.mi = mi
+        self._data = mi.Float(rgba.ravel())
+        nz, ny, nx = rgb.shape[:3]
+        self.res = (nx, ny, nz)
+        box = np.asarray(texture.box_mm, dtype=np.float64)
+        self.origin = tuple(float(x) for x in box[0])
+        self.texels_per_mm = tuple(
+            float(r / s) for r, s in zip(self.res, box[1] - box[0], strict=True)
+        )
+
+    def eval(self, p: object) -> object:
+        """drjit Color3f base colour at world points ``p`` (drjit Point3f, mm)."""
+        mi = self.mi
+        import drjit as dr  # noqa: PLC0415 - only after mitsuba picked the variant
+
+        idx, frac = [], []
+        for k, coord in enumerate((p.x, p.y, p.z)):
+            u = (coord - self.origin[k]) * self.texels_per_mm[k] - 0.5
+            u0 = dr.floor(u)
+            frac.append(u - u0)
+            i0 = mi.Int32(u0)
+            hi = self.res[k] - 1
+            idx.append((mi.UInt32(dr.clip(i0, 0, hi)), mi.UInt32(dr.clip(i0 + 1, 0, hi))))
+        nx, ny = self.res[0], self.res[1]
+        fx, fy, fz = frac
+        out = mi.Color3f(0.0)
+        for cz in range(2):
+            wz = fz if cz else 1.0 - fz
+            for cy in range(2):
+                wy = fy if cy else 1.0 - fy
+                row = (idx[2][cz] * ny + idx[1][cy]) * nx
+                for cx in range(2):
+                    w = wz * wy * (fx if cx else 1.0 - fx)
+                    v = dr.gather(mi.Vector4f, self._data, row + idx[0][cx])
+                    out += w * mi.Color3f(v.x, v.y, v.z)
+        return out
+
+
 class SpotDirectIntegrator:
     """One-bounce direct lighting of a loaded Mitsuba scene by a spot light at the scope tip.
 
     mi : the Mitsuba module with a JIT variant set (``llvm_ad_rgb`` or ``cuda_ad_rgb``).
     scene : the scene to trace (the light need not be in it).
-    bsdf : the BSDF of every shape in ``scene`` (the tissue has one), called directly
-        instead of through the per-hit BSDF pointer.
     camera : the raw camera (distortion included).
     used : (H, W) bool, the pixels to render (the field stop); the others stay 0.
     light : the spot light (position in the camera frame, intensity, cone).
     spp : samples per pixel (4x4-style stratified when a perfect square, else uniform).
+    texture : the tissue's base colour volume (the scene's principled BSDF uses the same).
+    roughness, specular : the principled BSDF's parameters (``sim.config.AppearanceConfig``).
     """
 
     def __init__(
         self,
         mi: ModuleType,
         scene: object,
-        bsdf: object,
         camera: Camera,
         used: np.ndarray,
         light: LightConfig,
         spp: int,
+        texture: TextureVolume,
+        roughness: float,
+        specular: float,
     ) -> None:
         import drjit as dr  # noqa: PLC0415 - only after mitsuba picked the variant
 
-        self.mi, self.dr, self.scene, self.bsdf = mi, dr, scene, bsdf
-        # Position, shading frame and wi are all the BSDF and the light need (no UVs).
+        self.mi, self.dr, self.scene = mi, dr, scene
+        # Position and shading normal are all the BSDF and the light need (no UVs).
         self._ray_flags = mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame
         self.shape = camera.shape
         self.used = np.asarray(used, dtype=bool).ravel()
@@ -116,21 +237,26 @@ class SpotDirectIntegrator:
         # down to 0 at the cutoff (spot.cpp ``falloff_curve``).
         width = math.radians(light.cutoff_deg - light.beam_width_deg)
         self._inv_transition = 1.0 / width if width > 0 else 0.0
+        self.texture = PackedTexture(mi, texture)
+        self.roughness = float(roughness)
+        # principled.cpp: eta from ``specular`` when no ``eta`` is given.
+        self.eta = 2.0 / (1.0 - math.sqrt(0.08 * float(specular))) - 1.0
 
-    def render(self, T_world_from_cam: np.ndarray, seed: int) -> np.ndarray:
-        """Linear radiance of one frame.
+    def radiance(self, T_world_from_cam: np.ndarray, seed: int) -> object:
+        """Linear radiance of the ``used`` pixels, as an unevaluated drjit Color3f.
 
         T_world_from_cam : (4, 4) float64 rigid pose, mm (OpenCV camera axes).
         seed : sampler seed (same seed and pose -> same values).
-        Returns (H, W, 3) float32, 0 outside ``used``.
         """
         mi, dr = self.mi, self.dr
         T = np.asarray(T_world_from_cam, dtype=np.float64)
         light_pos = T[:3, :3] @ self.light_offset_mm + T[:3, 3]
-        # Per-frame values travel as (non-literal) arrays so the traced kernel is the same
-        # every frame and drjit reuses the compiled one.
-        rot = mi.Float(np.ascontiguousarray(T[:3, :3].ravel(), dtype=np.float32))
-        pos = mi.Float(np.concatenate([T[:3, 3], light_pos]).astype(np.float32))
+        # Per-frame values enter as opaque scalars (not literals) so the traced kernel is
+        # the same every frame and drjit reuses the compiled one; a scalar is loaded
+        # once per kernel, not gathered per lane.
+        R = [dr.opaque(mi.Float, float(x)) for x in T[:3, :3].ravel()]
+        origin = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in T[:3, 3]))
+        lp = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in light_pos))
         spp = self.spp
         idx = dr.arange(mi.UInt32, self.n_pixels * spp)
         pixel = idx // spp
@@ -147,18 +273,16 @@ class SpotDirectIntegrator:
             + (jy - 0.5) * dr.gather(mi.Vector3f, self._d_dv, pixel)
         )
         d = dr.normalize(d)
-        R = [dr.gather(mi.Float, rot, k) for k in range(9)]
         d_world = mi.Vector3f(
             R[0] * d.x + R[1] * d.y + R[2] * d.z,
             R[3] * d.x + R[4] * d.y + R[5] * d.z,
             R[6] * d.x + R[7] * d.y + R[8] * d.z,
         )
-        origin = mi.Point3f(*(dr.gather(mi.Float, pos, k) for k in range(3)))
-        ray = mi.Ray3f(origin, d_world)
-        si = self.scene.ray_intersect(ray, ray_flags=self._ray_flags, coherent=True)
+        si = self.scene.ray_intersect(
+            mi.Ray3f(origin, d_world), ray_flags=self._ray_flags, coherent=True
+        )
         active = si.is_valid()
 
-        lp = mi.Point3f(*(dr.gather(mi.Float, pos, 3 + k) for k in range(3)))
         to_light = lp - si.p
         dist2 = dr.squared_norm(to_light)
         dist = dr.sqrt(dist2)
@@ -175,10 +299,54 @@ class SpotDirectIntegrator:
             shadow = mi.Ray3f(lp, -wo)
             shadow.maxt = dist * (1.0 - 1e-4)
             active &= ~self.scene.ray_test(shadow, coherent=True, active=active)
-        f = self.bsdf.eval(mi.BSDFContext(), si, si.to_local(wo), active)
+        base = self.texture.eval(si.p)
+        f = principled_eval(dr, si.sh_frame.n, -d_world, wo, base, self.roughness, self.eta)
         value = dr.select(active, f * (self._intensity * falloff / dist2), 0.0)
+        # One kernel for all three channels (a per-channel block sum would trace it thrice).
         dr.eval(value)
-        per_pixel = dr.block_sum(value, spp) / spp
+        return dr.block_sum(value, spp) / spp
+
+    def render(self, T_world_from_cam: np.ndarray, seed: int) -> np.ndarray:
+        """Linear radiance of one frame.
+
+        T_world_from_cam : (4, 4) float64 rigid pose, mm (OpenCV camera axes).
+        seed : sampler seed (same seed and pose -> same values).
+        Returns (H, W, 3) float32, 0 outside ``used``.
+        """
+        per_pixel = self.radiance(T_world_from_cam, seed)
         out = np.zeros((self.shape[0] * self.shape[1], 3), dtype=np.float32)
         out[self.used] = np.asarray(per_pixel, dtype=np.float32).T
         return out.reshape(self.shape[0], self.shape[1], 3)
+
+    def sensor(self, radiance: object, gain: object, cfg: ImagingConfig, key: int) -> object:
+        """The sensor model of :func:`sim.imaging.sensor_image` in drjit, on the used pixels.
+
+        radiance : drjit Color3f from :meth:`radiance`. gain : drjit Float, the vignetting
+        gain of the used pixels. key : noise seed (same key -> same noise).
+        Returns an unevaluated drjit Vector3u of 8-bit values (0 where the gain is 0).
+        Shot and read noise are Gaussian as in the numpy model, drawn by Box-Muller from
+        a counter-based hash of (key, pixel) instead of numpy's generator.
+        """
+        mi, dr = self.mi, self.dr
+        signal = dr.maximum(radiance, 0.0) * gain
+        exposure = mi.Float(float(cfg.exposure))
+        if cfg.auto_exposure:
+            n_inside = dr.count(gain > 0)
+            mean = dr.sum(signal.x + signal.y + signal.z) / mi.Float(3 * dr.maximum(n_inside, 1))
+            exposure *= dr.clip(cfg.ae_target / dr.maximum(mean, 1e-9), 0.05, 20.0)
+        signal *= exposure
+        if cfg.shot_noise > 0 or cfg.read_noise > 0:
+            std = dr.sqrt(cfg.shot_noise * dr.minimum(signal, 1.0) + cfg.read_noise**2)
+            pixel = dr.arange(mi.UInt32, self.n_pixels)
+            k = dr.opaque(mi.UInt32, int(key) % 2**32)
+            u = [
+                mi.Float(r >> 8) * (2.0**-24)
+                for j in range(2)
+                for r in mi.sample_tea_32(k, 2 * pixel + j)
+            ]
+            n01 = mi.warp.square_to_std_normal(mi.Point2f(u[0], u[1]))
+            n2 = mi.warp.square_to_std_normal(mi.Point2f(u[2], u[3]))
+            signal += mi.Color3f(n01.x, n01.y, n2.x) * std
+        signal = dr.power(dr.clip(signal, 0.0, 1.0), 1.0 / cfg.gamma)
+        q = mi.Vector3u(dr.round(signal * 255.0))
+        return dr.select(gain > 0, q, 0)

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
 import pytest
 import trimesh
 
-from chisel.geometry import Camera, look_at
+from chisel.geometry import Camera, look_at, make_transform
+from chisel.raycast import MeshRaycaster
 from sim.appearance import texture_volume
-from sim.config import SimConfig, replace_in
+from sim.config import ImagingConfig, SimConfig, replace_in
+from sim.imaging import sensor_image
 from sim.render import MeshRenderer
-from sim.spot_direct import pixel_ray_frames
+from sim.spot_direct import PackedTexture, pixel_ray_frames, principled_eval
 from sim.synthetic import toy_meshes
+from sim.variant import load_mitsuba
 
 SMALL = {"camera.width": 64, "camera.height": 48, "imaging.spp": 64}
 T_LOOK_Z = look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0])
@@ -103,3 +107,167 @@ def test_matches_mitsuba_direct_under_distortion_on_the_toy_phantom() -> None:
     # Same seed -> same values; another seed -> other noise.
     np.testing.assert_array_equal(r.render_radiance(T, seed=1)[stop].mean(-1), fast)
     assert not np.array_equal(r.render_radiance(T, seed=2)[stop].mean(-1), fast)
+
+
+def _jit_mitsuba():
+    mi, variant = load_mitsuba("auto")
+    if variant == "scalar_rgb":
+        pytest.skip("the inline BSDF, texture and sensor need a JIT variant")
+    import drjit as dr
+
+    return mi, dr
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@pytest.mark.parametrize(("roughness", "specular"), [(0.3, 0.5), (0.08, 0.9), (0.7, 0.2)])
+def test_inline_principled_matches_mitsuba_eval(roughness: float, specular: float) -> None:
+    """Random normals and directions, both hemispheres: the same value as ``principled``."""
+    mi, dr = _jit_mitsuba()
+    rng = np.random.default_rng(4)
+    n_dirs = 20_000
+    normal = _unit(rng.normal(size=(n_dirs, 3)))
+    wi = _unit(rng.normal(size=(n_dirs, 3)))
+    wo = _unit(rng.normal(size=(n_dirs, 3)))
+    wi[:50] = normal[:50]  # normal incidence and exact mirror configurations
+    wo[50:100] = 2 * np.sum(wi[50:100] * normal[50:100], -1, keepdims=True) * normal[50:100]
+    wo[50:100] -= wi[50:100]
+    base = rng.uniform(0.02, 0.95, size=(n_dirs, 3))
+
+    def v3(a: np.ndarray, cls=mi.Vector3f):
+        return cls(np.ascontiguousarray(a.T, dtype=np.float32))
+
+    bsdf = mi.load_dict(
+        {
+            "type": "principled",
+            "base_color": {"type": "volume", "volume": {"type": "constvolume"}},
+            "roughness": roughness,
+            "specular": specular,
+        }
+    )
+    # Mitsuba's own eval, in its local shading frame, with a per-lane base colour.
+    ref = []
+    for k in range(3):
+        b = np.zeros_like(base)
+        b[:, k] = 1.0
+        si = dr.zeros(mi.SurfaceInteraction3f, n_dirs)
+        si.sh_frame = mi.Frame3f(v3(normal))
+        si.wi = si.sh_frame.to_local(v3(wi))
+        f = bsdf.eval(mi.BSDFContext(), si, si.sh_frame.to_local(v3(wo)))
+        ref.append(np.asarray(f)[k] if np.asarray(f).ndim == 2 else np.asarray(f))
+    eta = 2.0 / (1.0 - np.sqrt(0.08 * specular)) - 1.0
+    ours = np.asarray(
+        principled_eval(
+            dr, v3(normal), v3(wi), v3(wo), v3(np.ones_like(base), mi.Color3f), roughness, eta
+        )
+    )
+    ref = np.asarray(ref)
+    # constvolume is 1 everywhere: the reference is the BSDF for a white base colour.
+    np.testing.assert_allclose(ours, ref, rtol=2e-4, atol=1e-6)
+    front = (np.sum(normal * wi, -1) > 0) & (np.sum(normal * wo, -1) > 0)
+    assert front.sum() > 3000 and np.all(ours[:, ~front] == 0)
+    # Linear in the base colour (diffuse lobe) plus a colourless specular lobe.
+    ours_b = np.asarray(
+        principled_eval(dr, v3(normal), v3(wi), v3(wo), v3(base, mi.Color3f), roughness, eta)
+    )
+    ours_0 = np.asarray(
+        principled_eval(dr, v3(normal), v3(wi), v3(wo), v3(0 * base, mi.Color3f), roughness, eta)
+    )
+    np.testing.assert_allclose(ours_b, ours_0 + (ours - ours_0) * base.T, rtol=1e-4, atol=1e-6)
+    assert ours_0[:, front].max() > 0.1  # the specular lobe is there
+
+
+def test_packed_texture_matches_mitsuba_gridvolume() -> None:
+    mi, dr = _jit_mitsuba()
+    box = np.array([[-3.0, 1.0, 2.0], [5.0, 7.5, 6.0]])
+    cfg = replace_in(SimConfig(), **{"appearance.texture_voxel_mm": 0.4})
+    tex = texture_volume(box, cfg.appearance, 3)
+    assert tex.rgb.shape[0] > 4
+    rng = np.random.default_rng(5)
+    # Inside the box and up to a voxel beyond it (clamped border).
+    pts = rng.uniform(tex.box_mm[0] - 0.5, tex.box_mm[1] + 0.5, size=(50_000, 3))
+    p = mi.Point3f(np.ascontiguousarray(pts.T, dtype=np.float32))
+    b = tex.box_mm
+    ref_tex = mi.load_dict(
+        {
+            "type": "volume",
+            "volume": {
+                "type": "gridvolume",
+                "grid": mi.VolumeGrid(np.ascontiguousarray(tex.rgb)),
+                "to_world": mi.ScalarTransform4f(make_transform(np.diag(b[1] - b[0]), b[0])),
+            },
+        }
+    )
+    si = dr.zeros(mi.SurfaceInteraction3f, len(pts))
+    si.p = p
+    ref = np.asarray(ref_tex.eval(si))
+    ours = np.asarray(PackedTexture(mi, tex).eval(p))
+    np.testing.assert_allclose(ours, ref, atol=2e-5)
+    assert ref.std() > 0.01
+
+
+def test_render_depth_from_the_colour_launch_is_exact() -> None:
+    """``render`` traces depth with colour in one launch: same as ``render_depth``, Open3D."""
+    mesh = toy_meshes(1)[1]
+    r = _renderer(mesh, **{"imaging.spp": 4})
+    T = look_at([34.0, 1.0, 0.5], [47.0, -1.5, 0.0], [0, 0, 1])
+    frame = r.render(T, index=2, seed=9)
+    np.testing.assert_array_equal(frame.depth_mm, r.render_depth(T)[0])
+    np.testing.assert_array_equal(frame.valid, np.isfinite(frame.depth_mm))
+    ref = MeshRaycaster.from_trimesh(mesh).render_depth(r.camera, T)
+    both = np.isfinite(ref) & np.isfinite(frame.depth_mm)
+    assert both.mean() > 0.9
+    assert np.median(np.abs(frame.depth_mm[both] - ref[both])) <= 0.01
+    again = r.render(T, index=2, seed=9)
+    np.testing.assert_array_equal(again.rgb, frame.rgb)
+    assert not np.array_equal(r.render(T, index=3, seed=9).rgb, frame.rgb)
+
+
+def test_sensor_in_drjit_matches_the_numpy_sensor_model() -> None:
+    """Same tone curve without noise; same noise statistics (not the same draws) with it."""
+    mesh = toy_meshes(1)[1]
+    r = _renderer(mesh)
+    mi = r.mi
+    stop = r.field_stop
+    gain = r._gain
+    rng = np.random.default_rng(6)
+    rad = np.zeros(stop.shape + (3,), np.float32)
+    rad[stop] = rng.uniform(0.0, 0.4, size=(int(stop.sum()), 3))
+    rad_dr = mi.Color3f(np.ascontiguousarray(rad[stop].T))
+
+    def jit(cfg: ImagingConfig, key: int) -> np.ndarray:
+        q = np.asarray(r._direct.sensor(rad_dr, r._gain_used, cfg, key), dtype=np.uint32).T
+        out = np.zeros(stop.shape + (3,), np.uint8)
+        out[stop] = q
+        return out
+
+    quiet = replace_in(SimConfig(), **{"imaging.shot_noise": 0.0, "imaging.read_noise": 0.0})
+    for ae in (True, False):
+        cfg = dataclasses.replace(quiet.imaging, auto_exposure=ae, exposure=1.7)
+        ref = sensor_image(rad, gain, cfg, np.random.default_rng(0))
+        ours = jit(cfg, 1)
+        # float32 rounding of the exposure mean and of the gamma curve: at most one level
+        assert np.abs(ours.astype(int) - ref).max() <= 1
+        assert (ours != ref).mean() < 0.01
+        assert ours[~stop].max() == 0
+    noisy = dataclasses.replace(quiet.imaging, shot_noise=0.01, read_noise=0.01)
+    flat = np.zeros(stop.shape + (3,), np.float32)
+    flat[stop] = 0.05
+    rad_dr = mi.Color3f(np.ascontiguousarray(flat[stop].T))
+    gain1 = np.where(stop, 1.0, 0.0).astype(np.float32)
+    r._gain_used, saved = mi.Float(gain1[stop]), r._gain_used
+    try:
+        ours = jit(noisy, 7)[stop].astype(float)
+        np.testing.assert_array_equal(jit(noisy, 7)[stop], ours)
+        assert not np.array_equal(jit(noisy, 8)[stop], ours)
+    finally:
+        r._gain_used = saved
+    ref = sensor_image(flat, gain1, noisy, np.random.default_rng(1))[stop].astype(float)
+    assert ours.mean() == pytest.approx(ref.mean(), abs=0.3)
+    assert ours.std() == pytest.approx(ref.std(), rel=0.05)
+    assert ours.std() > 3.0
+    # No correlation between channels or neighbouring pixels (independent draws).
+    c = np.corrcoef(np.stack([ours[:-1, 0], ours[1:, 0], ours[:-1, 1]]))
+    assert np.abs(c[np.triu_indices(3, 1)]).max() < 0.05
