@@ -228,18 +228,24 @@ class MeshRenderer:
         H, W = self.camera.shape
         n_pix = H * W
         idx = dr.arange(mi.UInt32, len(T) * n_pix)
-        frame = idx // n_pix
-        pixel = idx - frame * n_pix
-        rot = mi.Float(np.ascontiguousarray(T[:, :3, :3].reshape(-1), dtype=np.float32))
-        org = mi.Float(np.ascontiguousarray(T[:, :3, 3].reshape(-1), dtype=np.float32))
+        if len(T) == 1:
+            # One pose: opaque scalars, loaded once per kernel instead of gathered per ray.
+            pixel = idx
+            R = [dr.opaque(mi.Float, float(x)) for x in T[0, :3, :3].ravel()]
+            o_world = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in T[0, :3, 3]))
+        else:
+            frame = idx // n_pix
+            pixel = idx - frame * n_pix
+            rot = mi.Float(np.ascontiguousarray(T[:, :3, :3].reshape(-1), dtype=np.float32))
+            org = mi.Float(np.ascontiguousarray(T[:, :3, 3].reshape(-1), dtype=np.float32))
+            R = [dr.gather(mi.Float, rot, frame * 9 + k) for k in range(9)]
+            o_world = mi.Point3f(*(dr.gather(mi.Float, org, frame * 3 + k) for k in range(3)))
         d_cam = dr.gather(mi.Vector3f, self._dirs_cam, pixel)
-        R = [dr.gather(mi.Float, rot, frame * 9 + k) for k in range(9)]
         d_world = mi.Vector3f(
             R[0] * d_cam.x + R[1] * d_cam.y + R[2] * d_cam.z,
             R[3] * d_cam.x + R[4] * d_cam.y + R[5] * d_cam.z,
             R[6] * d_cam.x + R[7] * d_cam.y + R[8] * d_cam.z,
         )
-        o_world = mi.Point3f(*(dr.gather(mi.Float, org, frame * 3 + k) for k in range(3)))
         si = self.scene.ray_intersect_preliminary(mi.Ray3f(o_world, d_world), coherent=True)
         return si.t
 
