@@ -26,6 +26,8 @@ from chisel.geometry import Camera, invert_rigid
 
 MIN_SCALE_PIXELS = 50
 """Fewest pixels valid in both the render and the estimate for a scale to be solved."""
+NOISE_TAIL_RATIO = 3.0
+"""The noise-adaptive threshold's spread is at most this many times the shallow side's."""
 MAX_SCALE_PIXELS = 8000
 """About this many pixels (a regular stride) enter the scale's medians."""
 
@@ -42,11 +44,28 @@ class ChangeConfig:
     """Side of the square closing kernel, pixels (fills pin holes); 0 or 1 = off."""
     min_area_px: int = 30
     """Changed components smaller than this many pixels are dropped."""
+    min_views: int = 3
+    """Batch multi-view check: a changed pixel needs at least this many *other* frames that
+    see its old surface and also see it removed (0 = off, every frame trusted alone)."""
+    min_agreement: float = 0.75
+    """... and those must be at least this fraction of the other frames that see it."""
+    visible_mm: float = 1.0
+    """Another frame sees a pixel's old surface point when its own render of M_t reaches
+    that point within this distance, mm."""
+    noise_k: float = 3.0
+    """Noise-adaptive threshold: per frame, max(threshold_mm, noise_k * sigma) with sigma
+    the robust spread of M' - M_t (see :func:`frame_threshold`) (0 = off: fixed threshold)."""
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.threshold_mm) and self.threshold_mm > 0):
             raise InvalidInputError("threshold_mm", f"must be > 0 mm, got {self.threshold_mm}")
-        for name in ("open_px", "close_px", "min_area_px"):
+        if not 0.0 <= self.min_agreement <= 1.0:
+            raise InvalidInputError("min_agreement", f"must be in [0, 1], got {self.min_agreement}")
+        if not (np.isfinite(self.noise_k) and self.noise_k >= 0):
+            raise InvalidInputError("noise_k", f"must be >= 0, got {self.noise_k}")
+        if not self.visible_mm > 0:
+            raise InvalidInputError("visible_mm", f"must be > 0 mm, got {self.visible_mm}")
+        for name in ("open_px", "close_px", "min_area_px", "min_views"):
             if int(getattr(self, name)) < 0:
                 raise InvalidInputError(name, f"must be >= 0, got {getattr(self, name)}")
 
@@ -196,16 +215,43 @@ def _square(px: int) -> np.ndarray:
     return np.ones((px, px), dtype=np.uint8)
 
 
-def change_mask(m_prime: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> np.ndarray:
+def frame_threshold(m_raw: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> float:
+    """The change threshold of one frame, mm: ``cfg.threshold_mm``, raised to
+    ``cfg.noise_k`` robust standard deviations of the noise of M' - M_t when ``noise_k > 0``.
+
+    m_raw : (H, W) float32 M' before imputation, mm, NaN = lost; m_t : (H, W) float32 M_t.
+    """
+    if cfg.noise_k <= 0:
+        return float(cfg.threshold_mm)
+    r = (m_raw - m_t)[::2, ::2]
+    r = r[np.isfinite(r)]
+    neg = -r[r < 0]
+    if neg.size < MIN_SCALE_PIXELS:
+        return float(cfg.threshold_mm)
+    # The spread of all residuals (1.4826 MAD) measures the estimate's noise when most of the
+    # view is unchanged, heavy tails included. A large real change inflates it too, but only
+    # on the deeper side (tissue is only removed), so it is capped at a few times the spread
+    # of the shallower half, which is noise alone (0.6745 sigma is a half-normal's median).
+    sigma_all = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    sigma_neg = 1.4826 * float(np.median(neg))
+    sigma = min(sigma_all, NOISE_TAIL_RATIO * sigma_neg)
+    return max(float(cfg.threshold_mm), cfg.noise_k * sigma)
+
+
+def change_mask(
+    m_prime: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig, threshold_mm: float | None = None
+) -> np.ndarray:
     """Cleaned change mask m = (M' - M_t) > threshold.
 
     m_prime, m_t : (H, W) float32 depth, mm, NaN = invalid (invalid -> unchanged).
+    threshold_mm : the frame's threshold (None = ``cfg.threshold_mm``).
     Returns (H, W) bool, True = changed (tissue removed along this pixel's ray).
     """
     if m_prime.shape != m_t.shape:
         raise InvalidInputError("m_prime", f"shape {m_prime.shape} differs from M_t {m_t.shape}")
+    thr = cfg.threshold_mm if threshold_mm is None else float(threshold_mm)
     with np.errstate(invalid="ignore"):
-        raw = (m_prime - m_t) > cfg.threshold_mm
+        raw = (m_prime - m_t) > thr
     raw &= np.isfinite(m_prime) & np.isfinite(m_t)
     m = raw.astype(np.uint8)
     if cfg.open_px > 1:
@@ -214,6 +260,12 @@ def change_mask(m_prime: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> np.n
         m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _square(cfg.close_px))
         # Closing may bridge into pixels without data; only valid pixels can change.
         m &= (np.isfinite(m_prime) & np.isfinite(m_t)).astype(np.uint8)
+    return clean_mask(m.astype(bool), cfg)
+
+
+def clean_mask(mask: np.ndarray, cfg: ChangeConfig) -> np.ndarray:
+    """Drop changed components smaller than ``cfg.min_area_px``; (H, W) bool in and out."""
+    m = np.asarray(mask, dtype=np.uint8)
     if cfg.min_area_px > 1 and m.any():
         n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
         small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < cfg.min_area_px)
@@ -221,3 +273,110 @@ def change_mask(m_prime: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> np.n
         if small.size:
             m[np.isin(labels, small)] = 0
     return m.astype(bool)
+
+
+@numba.njit(parallel=True, cache=True)
+def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist,
+                        threshold_mm, visible_mm, support, observed):  # fmt: skip
+    N, H, W = masks.shape
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for i in numba.prange(N):
+        if not used[i]:
+            continue
+        for v in range(H):
+            for u in range(W):
+                if not masks[i, v, u]:
+                    continue
+                d = renders[i, v, u]
+                # The old surface point this pixel claims was removed, in world mm.
+                x = rays[v, u, 0] * d
+                y = rays[v, u, 1] * d
+                z = rays[v, u, 2] * d
+                X = T_wc[i, 0, 0] * x + T_wc[i, 0, 1] * y + T_wc[i, 0, 2] * z + T_wc[i, 0, 3]
+                Y = T_wc[i, 1, 0] * x + T_wc[i, 1, 1] * y + T_wc[i, 1, 2] * z + T_wc[i, 1, 3]
+                Z = T_wc[i, 2, 0] * x + T_wc[i, 2, 1] * y + T_wc[i, 2, 2] * z + T_wc[i, 2, 3]
+                n_sup = 0
+                n_obs = 0
+                for j in range(N):
+                    if j == i or not used[j]:
+                        continue
+                    xc = T_cw[j, 0, 0] * X + T_cw[j, 0, 1] * Y + T_cw[j, 0, 2] * Z + T_cw[j, 0, 3]
+                    yc = T_cw[j, 1, 0] * X + T_cw[j, 1, 1] * Y + T_cw[j, 1, 2] * Z + T_cw[j, 1, 3]
+                    zc = T_cw[j, 2, 0] * X + T_cw[j, 2, 1] * Y + T_cw[j, 2, 2] * Z + T_cw[j, 2, 3]
+                    if zc <= 1e-3:
+                        continue
+                    xn = xc / zc
+                    yn = yc / zc
+                    r2 = xn * xn + yn * yn
+                    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+                    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+                    uu = int(np.floor(fx * xd + cx + 0.5))
+                    vv = int(np.floor(fy * yd + cy + 0.5))
+                    if uu < 0 or vv < 0 or uu >= W or vv >= H:
+                        continue
+                    rj = renders[j, vv, uu]
+                    # Frame j sees the same old surface point (not occluded, not beside it)...
+                    if not (abs(rj - zc) <= visible_mm):
+                        continue
+                    dj = diffs[j, vv, uu]
+                    if not (dj == dj):  # NaN: no estimate there (lost in projection)
+                        continue
+                    n_obs += 1
+                    # ...and its own estimate also says the surface moved away.
+                    if dj > threshold_mm[j]:
+                        n_sup += 1
+                support[i, v, u] = n_sup
+                observed[i, v, u] = n_obs
+
+
+def multiview_support(
+    masks: np.ndarray,
+    renders_mm: np.ndarray,
+    estimates_mm: np.ndarray,
+    camera: Camera,
+    T_world_from_cams: np.ndarray,
+    used: np.ndarray,
+    threshold_mm: float | np.ndarray,
+    visible_mm: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How many other frames confirm each changed pixel: (support, observed), (N, H, W) int32.
+
+    masks : (N, H, W) bool change masks of one step's frames.
+    renders_mm : (N, H, W) float32 M_t at each frame's pose, mm, NaN = no surface.
+    estimates_mm : (N, H, W) float32 registered estimates M' re-projected into each frame
+        *before* imputation, mm, NaN = no estimate.
+    T_world_from_cams : (N, 4, 4) float64 poses the renders and estimates are expressed in.
+    used : (N,) bool, frames whose registration succeeded (the others neither vote nor count).
+    For a changed pixel of frame i, its old surface point (M_t) is projected into every other
+    used frame j. Frame j *observes* the point when its own render reaches it there (within
+    ``visible_mm``: not occluded, not beside a silhouette) and its estimate is valid; it
+    *supports* the change when its estimate is deeper than its render by ``threshold_mm``
+    (a number, or (N,) per-frame thresholds).
+    Counts are 0 at unchanged pixels.
+    """
+    m = np.ascontiguousarray(masks, dtype=np.bool_)
+    N = len(m)
+    for name, a in (("renders_mm", renders_mm), ("estimates_mm", estimates_mm)):
+        if np.shape(a) != m.shape:
+            raise InvalidInputError(name, f"shape {np.shape(a)} differs from masks {m.shape}")
+    P = np.asarray(T_world_from_cams, dtype=np.float64)
+    if P.shape != (N, 4, 4) or np.shape(used) != (N,):
+        raise InvalidInputError("T_world_from_cams", f"expected ({N}, 4, 4) poses and ({N},) used")
+    if m.shape[1:] != camera.shape:
+        raise InvalidInputError(
+            "masks", f"image shape {m.shape[1:]} is not the camera's {camera.shape}"
+        )
+    r = np.ascontiguousarray(renders_mm, dtype=np.float32)
+    diffs = np.ascontiguousarray(estimates_mm, dtype=np.float32) - r
+    support = np.zeros(m.shape, dtype=np.int32)
+    observed = np.zeros(m.shape, dtype=np.int32)
+    _consistency_kernel(
+        m, r, diffs, np.ascontiguousarray(camera.rays_cam()), np.ascontiguousarray(P),
+        np.ascontiguousarray(np.stack([invert_rigid(T) for T in P])) if N else P,
+        np.ascontiguousarray(used, dtype=np.bool_), camera.fx, camera.fy, camera.cx, camera.cy,
+        np.ascontiguousarray(camera.dist, dtype=np.float64),
+        np.broadcast_to(np.asarray(threshold_mm, dtype=np.float64), (N,)).copy(),
+        float(visible_mm), support, observed,
+    )  # fmt: skip
+    return support, observed

@@ -57,14 +57,19 @@ class GroundTruthDepth:
 
 
 class SequenceDepth:
-    """Depth maps from another sequence folder with the same frame count (mm)."""
+    """Depth maps from another sequence folder with the same frame count.
 
-    is_metric = True
+    The depth is metric (mm) unless the folder says it is relative: ``chisel depth
+    predict`` writes ``meta.depth_prediction.relative_depth = true``, and then the updater
+    solves the scale, exactly as when the network is the depth source.
+    """
 
     def __init__(self, path: str | Path, expected_frames: int | None = None) -> None:
         self.sequence = Sequence(path)
         if not self.sequence.has_depth:
             raise InvalidInputError(path, "depth-source sequence has no depth maps")
+        prediction = self.sequence.meta.get("depth_prediction") or {}
+        self.is_metric = not bool(prediction.get("relative_depth", False))
         if expected_frames is not None and len(self.sequence) != expected_frames:
             raise InvalidInputError(
                 path,

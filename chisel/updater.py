@@ -34,7 +34,16 @@ import cv2
 import numpy as np
 import trimesh
 
-from chisel.change import ChangeConfig, change_mask, impute, solve_scale, warp_depth
+from chisel.change import (
+    ChangeConfig,
+    change_mask,
+    clean_mask,
+    frame_threshold,
+    impute,
+    multiview_support,
+    solve_scale,
+    warp_depth,
+)
 from chisel.depth_source import is_metric
 from chisel.errors import EmptyResultError, InvalidInputError, PoseError
 from chisel.fusion import check_pose_in_model, integrate
@@ -236,6 +245,14 @@ class FrameReport:
     """(H, W) float32 M' after imputation, mm (not serialised)."""
     m_t: np.ndarray | None = field(default=None, repr=False)
     """(H, W) float32 render of the model M_t, mm (not serialised)."""
+    m_raw: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) float32 M' before imputation (NaN = lost), mm; kept until fused."""
+    T_world_from_cam: np.ndarray | None = field(default=None, repr=False)
+    """(4, 4) the pose the maps are expressed in (the tracked pose); kept until fused."""
+    unconfirmed_px: int = 0
+    """Changed pixels dropped because other frames did not confirm them (batch)."""
+    threshold_mm: float = float("nan")
+    """The change threshold used for this frame, mm (see ``ChangeConfig.noise_k``)."""
 
     def to_dict(self) -> dict:
         return {
@@ -246,6 +263,8 @@ class FrameReport:
             "registration": self.registration,
             "changed_fraction": float(self.changed_fraction),
             "voxels_updated": int(self.voxels_updated),
+            "unconfirmed_px": int(self.unconfirmed_px),
+            "threshold_mm": None if not np.isfinite(self.threshold_mm) else self.threshold_mm,
         }
 
 
@@ -407,6 +426,21 @@ class ChiselUpdater:
         tracked pose if already rendered; scale0 : the estimate's scale solved against
         ``render_mm`` if already known (batch). Returns the frame's report; a frame that fails
         registration is skipped (``used = False``) and leaves the model untouched.
+        Same as :meth:`detect` then :meth:`fuse`.
+        """
+        return self.fuse(self.detect(frame, estimate, render_mm, scale0), frame.rgb, keep_maps)
+
+    def detect(
+        self,
+        frame: Frame,
+        estimate: np.ndarray | None = None,
+        render_mm: np.ndarray | None = None,
+        scale0: float | None = None,
+    ) -> FrameReport:
+        """Registration and change mask of one frame, without touching the model.
+
+        Arguments as :meth:`process`. The report carries the maps (mask, M', M_t) until
+        :meth:`fuse` applies it; a batch may edit ``mask`` in between (multi-view check).
         """
         renderer = self.renderer
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
@@ -414,43 +448,61 @@ class ChiselUpdater:
         R = renderer.render(self.camera, T) if render_mm is None else render_mm
         rep = FrameReport(index=frame.index, used=False)
         try:
-            m_prime, scale, reg_res = self._m_prime(T, E, R, scale0)
+            m_raw, scale, reg_res = self._m_prime(T, E, R, scale0)
         except EmptyResultError as exc:
             rep.reason = str(exc)
-            self._frames.append(rep)
             return rep
         rep.scale = scale
         rep.registration = None if reg_res is None else reg_res.to_dict()
         if reg_res is not None and not reg_res.ok:
             rep.reason = f"registration failed: {reg_res.reason}"
-            self._frames.append(rep)
             return rep
         if reg_res is not None:
             self._F_hist.append(invert_rigid(T) @ reg_res.T_model_from_est @ T)
-        mask = change_mask(m_prime, R, self.cfg.change)
-        lateral = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        rep.voxels_updated = integrate(
-            self.model,
-            self.camera,
-            T,
-            m_prime,
-            pixel_weight=mask,
-            rgb=frame.rgb,
-            reset=self._reset,
-            lateral_px=lateral,
-        )
-        valid = np.isfinite(R)
-        rep.changed_fraction = float(mask.sum() / max(int(valid.sum()), 1))
+        m_prime = impute(m_raw, R)
+        rep.threshold_mm = frame_threshold(m_raw, R, self.cfg.change)
+        rep.mask = change_mask(m_prime, R, self.cfg.change, rep.threshold_mm)
+        rep.m_prime, rep.m_t, rep.m_raw, rep.T_world_from_cam = m_prime, R, m_raw, T
         rep.used = True
-        if keep_maps:
-            rep.mask, rep.m_prime, rep.m_t = mask, m_prime, R
+        return rep
+
+    def fuse(
+        self, rep: FrameReport, rgb: np.ndarray | None = None, keep_maps: bool = False
+    ) -> FrameReport:
+        """Carve a detected frame's change mask into the model (masked update); returns ``rep``.
+
+        rgb : (H, W, 3) uint8 colour of the frame (used when the model has colour).
+        Frames not used (failed registration) only join the step's report.
+        """
+        if rep.used:
+            if rep.mask is None or rep.m_prime is None or rep.m_t is None:
+                raise InvalidInputError("rep", f"frame {rep.index}: maps already dropped")
+            mask = rep.mask
+            lateral = cv2.distanceTransform(
+                mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE
+            )
+            rep.voxels_updated = integrate(
+                self.model,
+                self.camera,
+                rep.T_world_from_cam,
+                rep.m_prime,
+                pixel_weight=mask,
+                rgb=rgb,
+                reset=self._reset,
+                lateral_px=lateral,
+            )
+            valid = np.isfinite(rep.m_t)
+            rep.changed_fraction = float(mask.sum() / max(int(valid.sum()), 1))
+        rep.m_raw = rep.T_world_from_cam = None
+        if not keep_maps:
+            rep.mask = rep.m_prime = rep.m_t = None
         self._frames.append(rep)
         return rep
 
     def _m_prime(
         self, T: np.ndarray, E: np.ndarray, R: np.ndarray, scale0: float | None = None
     ) -> tuple[np.ndarray, float, RegistrationResult | None]:
-        """M' (after imputation), the scale, and the registration (None when off)."""
+        """M' before imputation (NaN = lost), the scale, and the registration (None = off)."""
         cfg = self.cfg
         scale_free = _scale_free(cfg, self.depth_source)
         if not scale_free:
@@ -460,7 +512,7 @@ class ChiselUpdater:
         else:
             s0 = solve_scale(R, E, cfg.change.threshold_mm)[0]
         if not cfg.register:
-            return impute((s0 * E).astype(np.float32), R), s0, None
+            return (s0 * E).astype(np.float32), s0, None
         rcfg = cfg.registration
         C = T @ self.hand_eye @ invert_rigid(T)
         prior = self._fixed or len(self._F_hist) >= 3
@@ -492,11 +544,10 @@ class ChiselUpdater:
         s = s0 * sim.scale
         res.extra.update({"scale_refinement": sim.scale, "icp_iterations": sim.iterations})
         if not res.ok:
-            return impute(np.full_like(E, np.nan), R), s, res
+            return np.full_like(E, np.nan), s, res
         # Registered estimate (camera at C @ T) re-projected into the tracked camera T.
         T_tracked_from_registered = invert_rigid(T) @ res.T_model_from_est @ T
-        m_prime = impute(warp_depth(s * E, self.camera, T_tracked_from_registered), R)
-        return m_prime, s, res
+        return warp_depth(s * E, self.camera, T_tracked_from_registered), s, res
 
 
 def _scale_free(cfg: UpdateConfig, source: object) -> bool:
@@ -594,8 +645,14 @@ def update_step(
         hand_eye=F, fixed=F is not None, sequence_registration=seq_reg, renderer=renderer
     )
     items = list(zip(frames, estimates, renders, scales, strict=True))
-    for f, E, R, s in progress(items) if progress is not None else items:
-        upd.process(f, estimate=E, render_mm=R, keep_maps=keep_maps, scale0=s)
+    reps = [
+        upd.detect(f, estimate=E, render_mm=R, scale0=s)
+        for f, E, R, s in (progress(items) if progress is not None else items)
+    ]
+    if cfg.change.min_views > 0:
+        confirm_changes(reps, camera, cfg.change)
+    for f, rep in zip(frames, reps, strict=True):
+        upd.fuse(rep, f.rgb, keep_maps=keep_maps)
     report = upd.end_step()
     return upd.model, report
 
@@ -606,6 +663,41 @@ def _try_scale(render_mm: np.ndarray, estimate: np.ndarray, cfg: UpdateConfig) -
         return solve_scale(render_mm, estimate, cfg.change.threshold_mm)[0]
     except EmptyResultError:
         return None
+
+
+def confirm_changes(reps: list[FrameReport], camera: Camera, cfg: ChangeConfig) -> None:
+    """Multi-view check of a step's change masks, **in place** (batch mode).
+
+    A changed pixel stays changed when at least ``cfg.min_views`` other frames that see
+    its old surface point also see it removed, and they are at least ``cfg.min_agreement``
+    of the frames that see it (:func:`chisel.change.multiview_support`). Depth errors of a
+    monocular network differ from view to view, tissue removal does not: this is what
+    keeps one frame's error from carving the model for good. The mask is cleaned again
+    afterwards (components below the minimum area go).
+    """
+    used = np.array([r.used for r in reps], dtype=bool)
+    if used.sum() < 2:
+        return
+    shape = camera.shape
+
+    def stack(name: str, fill: float) -> np.ndarray:
+        return np.stack(
+            [getattr(r, name) if r.used else np.full(shape, fill, np.float32) for r in reps]
+        )
+
+    masks = np.stack([r.mask if r.used else np.zeros(shape, bool) for r in reps])
+    poses = np.stack([r.T_world_from_cam if r.used else np.eye(4) for r in reps])
+    support, observed = multiview_support(
+        masks, stack("m_t", np.nan), stack("m_raw", np.nan), camera, poses, used,
+        np.array([r.threshold_mm if r.used else np.inf for r in reps]), cfg.visible_mm,
+    )  # fmt: skip
+    keep = (support >= cfg.min_views) & (support >= cfg.min_agreement * observed)
+    for r, m, k in zip(reps, masks, keep, strict=True):
+        if not r.used:
+            continue
+        new = clean_mask(m & k, cfg)
+        r.unconfirmed_px = int(m.sum() - new.sum())
+        r.mask = new
 
 
 def _hand_eye(

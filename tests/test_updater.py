@@ -17,6 +17,7 @@ from test_updater_scenes import (
     tissue_mesh,
 )
 
+from chisel.change import ChangeConfig
 from chisel.depth_source import CallableDepth, GroundTruthDepth
 from chisel.errors import (
     CameraError,
@@ -125,14 +126,22 @@ def test_registration_ablation_and_threshold(scene: dict) -> None:
     P = poses(6, seed=5)
     E = pose_error(2.0, 2.0, seed=3)
     fr = frames(scene["bitten"], cam, P, np.stack([T @ E for T in P]))
-    off = UpdateConfig(register=False)
+    # The single-frame detector (no multi-view check, fixed threshold), as in the paper.
+    single = ChangeConfig(min_views=0, noise_k=0.0)
+    off = UpdateConfig(register=False, change=single)
     _, rep = update_step(model, cam, fr, GroundTruthDepth(), off)
     assert all(f.registration is None for f in rep.frames)
     # Without registration the pose error shows up as spurious change.
-    _, rep_on = update_step(model, cam, fr, GroundTruthDepth())
+    _, rep_on = update_step(model, cam, fr, GroundTruthDepth(), UpdateConfig(change=single))
     frac_off = np.mean([f.changed_fraction for f in rep.frames])
     frac_on = np.mean([f.changed_fraction for f in rep_on.frames])
     assert frac_off > frac_on
+    # The multi-view check rejects most of it: a pose error moves the surface differently
+    # in each view, removed tissue is removed in all of them.
+    _, rep_mv = update_step(model, cam, fr, GroundTruthDepth(), UpdateConfig(register=False))
+    frac_mv = np.mean([f.changed_fraction for f in rep_mv.frames])
+    assert frac_mv < 0.5 * frac_off
+    assert sum(f.unconfirmed_px for f in rep_mv.frames) > 0
     # A threshold above the 4 mm pocket depth sees no change: model bit-identical.
     high = replace(UpdateConfig(), change=replace(UpdateConfig().change, threshold_mm=6.0))
     same, rep_hi = update_step(model, cam, fr, GroundTruthDepth(), high)

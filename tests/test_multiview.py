@@ -1,0 +1,142 @@
+"""The multi-view check of change masks, the noise-adaptive threshold, relative depth files."""
+
+import numpy as np
+import pytest
+from test_updater_scenes import (
+    BITE_HI,
+    BITE_LO,
+    bitten_mesh,
+    camera,
+    frames,
+    poses,
+    preop_poses,
+    tissue_mesh,
+)
+
+from chisel.change import ChangeConfig, frame_threshold, multiview_support
+from chisel.depth_source import CallableDepth, SequenceDepth
+from chisel.errors import InvalidInputError
+from chisel.mesh import extract_mesh
+from chisel.raycast import MeshRaycaster
+from chisel.sequence import Frame, write_sequence
+from chisel.updater import BuildConfig, UpdateConfig, build_preop_model, update_step
+
+SINGLE = ChangeConfig(min_views=0, noise_k=0.0)
+"""The paper's per-frame detector: fixed threshold, every frame trusted alone."""
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    tissue = tissue_mesh()
+    cam = camera()
+    model = build_preop_model(tissue, cam, preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5))
+    return {"tissue": tissue, "bitten": bitten_mesh(tissue), "cam": cam, "model": model}
+
+
+def _blob(shape: tuple[int, int], centre: tuple[int, int], radius_px: int) -> np.ndarray:
+    v, u = np.mgrid[: shape[0], : shape[1]]
+    return (u - centre[0]) ** 2 + (v - centre[1]) ** 2 <= radius_px**2
+
+
+def test_support_counts_on_a_plane(scene: dict) -> None:
+    # Unchanged tissue, exact renders: a pixel that one frame claims changed is observed
+    # by the other frames that see its point, and none of them supports it.
+    cam = scene["cam"]
+    P = poses(5, seed=3, spread_mm=1.0)
+    rc = MeshRaycaster.from_trimesh(scene["tissue"])
+    renders = np.stack([rc.render_depth(cam, T) for T in P])
+    estimates = renders.copy()
+    masks = np.zeros(renders.shape, bool)
+    masks[0] = _blob(cam.shape, (48, 40), 6) & np.isfinite(renders[0])
+    used = np.ones(5, bool)
+    support, observed = multiview_support(masks, renders, estimates, cam, P, used, 1.0, 1.0)
+    on = masks[0]
+    assert support[0][on].max() == 0
+    assert observed[0][on].min() >= 3 and observed[0][on].max() == 4  # the others see it
+    assert observed[1:].max() == 0 and support[~masks].max() == 0
+    # If the other frames' estimates are deeper there too, every observer supports it.
+    estimates[1:] += 3.0
+    support, observed4 = multiview_support(masks, renders, estimates, cam, P, used, 1.0, 1.0)
+    np.testing.assert_array_equal(support, observed4)
+    # A frame whose registration failed neither votes nor counts.
+    used[2] = False
+    _, observed3 = multiview_support(masks, renders, estimates, cam, P, used, 1.0, 1.0)
+    assert np.all(observed3[0][on] <= observed4[0][on]) and observed3[0][on].max() == 3
+    # Per-frame thresholds: frame 1 needs more than 3 mm, so it observes but does not support.
+    thr = np.array([1.0, 3.5, 1.0, 1.0, 1.0])
+    support, observed = multiview_support(masks, renders, estimates, cam, P, used, thr, 1.0)
+    np.testing.assert_array_equal(observed, observed3)
+    assert np.all(support[0][on] <= observed[0][on]) and np.any(support[0][on] < observed[0][on])
+    with pytest.raises(InvalidInputError, match="renders_mm"):
+        multiview_support(masks, renders[:4], estimates, cam, P, used, 1.0, 1.0)
+    with pytest.raises(InvalidInputError, match="T_world_from_cams"):
+        multiview_support(masks, renders, estimates, cam, P[:4], used, 1.0, 1.0)
+
+
+def test_frame_threshold_follows_the_noise() -> None:
+    rng = np.random.default_rng(0)
+    m_t = np.full((120, 160), 25.0, np.float32)
+    cfg = ChangeConfig(noise_k=3.0, threshold_mm=1.0)
+    # Exact depth: the fixed threshold.
+    assert frame_threshold(m_t.copy(), m_t, cfg) == 1.0
+    # Gaussian noise of 0.8 mm: about 3 x 0.8 mm.
+    noisy = (m_t + rng.normal(0.0, 0.8, m_t.shape)).astype(np.float32)
+    assert frame_threshold(noisy, m_t, cfg) == pytest.approx(2.4, rel=0.1)
+    # Half of the view really 3 mm deeper, with 0.2 mm noise: capped by the shallow side's
+    # spread, the threshold stays far below the 3 mm change.
+    half = (m_t + rng.normal(0.0, 0.2, m_t.shape)).astype(np.float32)
+    half[:, :80] += 3.0
+    assert frame_threshold(half, m_t, cfg) < 2.0
+    # Off: the fixed threshold whatever the noise.
+    assert frame_threshold(noisy, m_t, ChangeConfig(noise_k=0.0)) == 1.0
+    with pytest.raises(InvalidInputError, match="noise_k"):
+        ChangeConfig(noise_k=-1.0)
+    with pytest.raises(InvalidInputError, match="min_agreement"):
+        ChangeConfig(min_agreement=1.5)
+    with pytest.raises(InvalidInputError, match="min_views"):
+        ChangeConfig(min_views=-1)
+
+
+def test_one_frames_depth_error_is_not_carved(scene: dict) -> None:
+    # Exact depth everywhere except a 6 mm-too-deep blob on unchanged tissue in one frame
+    # (a network's error): the single-frame detector carves it for good, the multi-view
+    # check does not, and the true bite is carved either way.
+    cam, model = scene["cam"], scene["model"]
+    P = poses(12, seed=2)
+    fr = frames(scene["bitten"], cam, P)
+    blob = _blob(cam.shape, (15, 15), 7)
+
+    def depth(f: Frame) -> np.ndarray:
+        d = f.depth_mm.copy()
+        if f.index == 4:
+            d[blob] += 6.0
+        return d
+
+    src = CallableDepth(depth, metric=True)
+    single, rep_single = update_step(model, cam, fr, src, UpdateConfig(change=SINGLE))
+    multi, rep_multi = update_step(model, cam, fr, src, UpdateConfig())
+    assert rep_single.frames[4].changed_fraction > rep_multi.frames[4].changed_fraction
+    assert rep_multi.frames[4].unconfirmed_px >= blob.sum() * 0.8
+    rc0 = MeshRaycaster.from_trimesh(extract_mesh(model))
+    d0 = rc0.render_depth(cam, P[4])
+    d_single = MeshRaycaster.from_trimesh(extract_mesh(single)).render_depth(cam, P[4])
+    d_multi = MeshRaycaster.from_trimesh(extract_mesh(multi)).render_depth(cam, P[4])
+    on_blob = blob & np.isfinite(d0)
+    assert np.nanmedian(d_single[on_blob] - d0[on_blob]) > 2.0  # carved by one frame's error
+    assert np.nanmax(np.abs(d_multi[on_blob] - d0[on_blob])) < 0.25  # left alone
+    # The bite itself is carved by both: its floor (z = 29) appears.
+    for new in (single, multi):
+        v = extract_mesh(new).vertices
+        inside = np.all((v >= BITE_LO + [0.5, 0.5, 0]) & (v <= BITE_HI - [0.5, 0.5, 0]), axis=1)
+        assert np.sum(inside & (np.abs(v[:, 2] - 29.0) < 0.5)) > 50
+
+
+def test_relative_depth_folders_are_not_metric(scene: dict, tmp_path) -> None:
+    cam = scene["cam"]
+    fr = frames(scene["bitten"], cam, poses(2, seed=2))
+    write_sequence(tmp_path / "metric", cam, fr)
+    write_sequence(
+        tmp_path / "relative", cam, fr, meta={"depth_prediction": {"relative_depth": True}}
+    )
+    assert SequenceDepth(tmp_path / "metric").is_metric
+    assert not SequenceDepth(tmp_path / "relative").is_metric
