@@ -113,6 +113,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--threshold-mm", type=float, default=1.0, help="change threshold M' - M_t, mm (1.0)"
     )
+    p.add_argument(
+        "--noise-k",
+        type=float,
+        default=3.0,
+        help="per frame, raise the threshold to this many robust standard deviations of the "
+        "estimate's noise (3.0; 0 = the fixed threshold, as in the paper)",
+    )
+    p.add_argument(
+        "--min-views",
+        type=int,
+        default=3,
+        help="a changed pixel needs this many other frames of the step that see its old "
+        "surface and also see it removed (3; 0 = every frame trusted alone, as in the paper)",
+    )
+    p.add_argument(
+        "--min-agreement",
+        type=float,
+        default=0.75,
+        help="... and at least this fraction of the frames that see it (0.75)",
+    )
     p.add_argument("--max-frames", type=int, default=None, help="use the first N frames only")
     p.add_argument(
         "--depth-noise-mm",
@@ -242,7 +262,12 @@ def _cmd_update(args: argparse.Namespace) -> int:
     if args.depth_noise_mm < 0:
         raise InvalidInputError("--depth-noise-mm", f"must be >= 0, got {args.depth_noise_mm}")
     cfg = UpdateConfig(
-        change=ChangeConfig(threshold_mm=args.threshold_mm),
+        change=ChangeConfig(
+            threshold_mm=args.threshold_mm,
+            noise_k=args.noise_k,
+            min_views=args.min_views,
+            min_agreement=args.min_agreement,
+        ),
         registration=RegistrationConfig(min_fitness=args.min_fitness, seed=args.seed),
         register=not args.no_registration,
         allow_unused_step=args.allow_unused_step,

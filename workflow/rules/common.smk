@@ -113,7 +113,13 @@ def update_inputs(wc):
 def update_options(wc, input):
     depth, registration = METHOD_SPECS[wc.method]
     # A step whose frames all fail registration is scored as "no update", not a crash.
-    opts = [f"--threshold-mm {UC.get('threshold_mm', 1.0)}", "--allow-unused-step"]
+    opts = [
+        f"--threshold-mm {UC.get('threshold_mm', 1.0)}",
+        f"--noise-k {UC.get('noise_k', 3.0)}",
+        f"--min-views {UC.get('min_views', 3)}",
+        f"--min-agreement {UC.get('min_agreement', 0.75)}",
+        "--allow-unused-step",
+    ]
     opts.append(f"--depth-source sequence:{input.pred}" if depth == "network" else "--depth-source gt")
     if not registration:
         opts.append("--no-registration")
