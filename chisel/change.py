@@ -44,10 +44,10 @@ class ChangeConfig:
     """Side of the square closing kernel, pixels (fills pin holes); 0 or 1 = off."""
     min_area_px: int = 30
     """Changed components smaller than this many pixels are dropped."""
-    min_views: int = 3
+    min_views: int = 5
     """Batch multi-view check: a changed pixel needs at least this many *other* frames that
     see its old surface and also see it removed (0 = off, every frame trusted alone)."""
-    min_agreement: float = 0.75
+    min_agreement: float = 0.8
     """... and those must be at least this fraction of the other frames that see it."""
     visible_mm: float = 1.0
     """Another frame sees a pixel's old surface point when its own render of M_t reaches

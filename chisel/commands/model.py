@@ -123,15 +123,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--min-views",
         type=int,
-        default=3,
+        default=5,
         help="a changed pixel needs this many other frames of the step that see its old "
-        "surface and also see it removed (3; 0 = every frame trusted alone, as in the paper)",
+        "surface and also see it removed (5; 0 = every frame trusted alone, as in the paper)",
     )
     p.add_argument(
         "--min-agreement",
         type=float,
-        default=0.75,
-        help="... and at least this fraction of the frames that see it (0.75)",
+        default=0.8,
+        help="... and at least this fraction of the frames that see it (0.8)",
     )
     p.add_argument("--max-frames", type=int, default=None, help="use the first N frames only")
     p.add_argument(

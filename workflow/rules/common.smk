@@ -116,8 +116,8 @@ def update_options(wc, input):
     opts = [
         f"--threshold-mm {UC.get('threshold_mm', 1.0)}",
         f"--noise-k {UC.get('noise_k', 3.0)}",
-        f"--min-views {UC.get('min_views', 3)}",
-        f"--min-agreement {UC.get('min_agreement', 0.75)}",
+        f"--min-views {UC.get('min_views', 5)}",
+        f"--min-agreement {UC.get('min_agreement', 0.8)}",
         "--allow-unused-step",
     ]
     opts.append(f"--depth-source sequence:{input.pred}" if depth == "network" else "--depth-source gt")
