@@ -147,6 +147,18 @@ def reproject_depth(
     return _zbuffer(u, v, z.astype(np.float32), camera.height, camera.width, out)
 
 
+@numba.njit(cache=True, inline="always")
+def _pixel_of(X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3):
+    """Nearest raw (distorted) pixel (u, v) of a camera-frame point with Z > 0."""
+    xn = X / Z
+    yn = Y / Z
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+    return int(np.floor(fx * xd + cx + 0.5)), int(np.floor(fy * yd + cy + 0.5))
+
+
 @numba.njit(cache=True)
 def _warp_kernel(depth, rays, D, fx, fy, cx, cy, dist, out):
     H, W = depth.shape
@@ -164,14 +176,7 @@ def _warp_kernel(depth, rays, D, fx, fy, cx, cy, dist, out):
             Z = D[2, 0] * x + D[2, 1] * y + D[2, 2] * z + D[2, 3]
             if Z <= 1e-6:
                 continue
-            xn = X / Z
-            yn = Y / Z
-            r2 = xn * xn + yn * yn
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-            yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
-            uu = int(np.floor(fx * xd + cx + 0.5))
-            vv = int(np.floor(fy * yd + cy + 0.5))
+            uu, vv = _pixel_of(X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3)
             if 0 <= uu < W and 0 <= vv < H:
                 cur = out[vv, uu]
                 if not (cur <= Z):
@@ -305,14 +310,7 @@ def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, c
                     zc = T_cw[j, 2, 0] * X + T_cw[j, 2, 1] * Y + T_cw[j, 2, 2] * Z + T_cw[j, 2, 3]
                     if zc <= 1e-3:
                         continue
-                    xn = xc / zc
-                    yn = yc / zc
-                    r2 = xn * xn + yn * yn
-                    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-                    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
-                    uu = int(np.floor(fx * xd + cx + 0.5))
-                    vv = int(np.floor(fy * yd + cy + 0.5))
+                    uu, vv = _pixel_of(xc, yc, zc, fx, fy, cx, cy, k1, k2, p1, p2, k3)
                     if uu < 0 or vv < 0 or uu >= W or vv >= H:
                         continue
                     rj = renders[j, vv, uu]
