@@ -38,22 +38,6 @@ class MeshRaycaster:
     def from_trimesh(cls, mesh) -> MeshRaycaster:  # noqa: ANN001 - trimesh.Trimesh
         return cls(mesh.vertices, mesh.faces)
 
-    def cast(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Distance along each ray to the first hit, in units of ``|direction|``; inf on a miss.
-
-        origins_mm, directions : (..., 3) float. Returns (...,) float32.
-        """
-        shape = np.shape(origins_mm)[:-1]
-        rays = np.concatenate(
-            [
-                np.asarray(origins_mm, np.float32).reshape(-1, 3),
-                np.asarray(directions, np.float32).reshape(-1, 3),
-            ],
-            axis=1,
-        )
-        hit = self.scene.cast_rays(o3d.core.Tensor(rays))
-        return hit["t_hit"].numpy().reshape(shape)
-
     def render_depths(
         self, camera: Camera, T_world_from_cams: np.ndarray, batch: int = 8
     ) -> np.ndarray:
@@ -65,19 +49,22 @@ class MeshRaycaster:
         P = check_rigid(T_world_from_cams, "T_world_from_cams")
         if P.ndim != 3:
             raise InvalidInputError("T_world_from_cams", f"expected (N, 4, 4), got {P.shape}")
-        dirs = self._camera_rays(camera)
-        n_px = len(dirs)
         out = np.empty((len(P), camera.height, camera.width), dtype=np.float32)
         for a in range(0, len(P), batch):
             chunk = P[a : a + batch]
-            rays = np.empty((len(chunk), n_px, 6), dtype=np.float32)
-            for i, T in enumerate(chunk):
-                rays[i, :, :3] = T[:3, 3]
-                rays[i, :, 3:] = dirs @ T[:3, :3].T.astype(np.float32)
-            t = self.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)))["t_hit"].numpy()
-            t[~np.isfinite(t)] = np.nan
-            out[a : a + len(chunk)] = t.reshape(len(chunk), camera.height, camera.width)
+            out[a : a + len(chunk)] = self._cast_poses(camera, chunk)
         return out
+
+    def _cast_poses(self, camera: Camera, poses: np.ndarray) -> np.ndarray:
+        """One Open3D call for every pixel of ``poses`` (n, 4, 4): (n, H, W) z-depth, NaN miss."""
+        dirs = self._camera_rays(camera)
+        rays = np.empty((len(poses), len(dirs), 6), dtype=np.float32)
+        for i, T in enumerate(poses):
+            rays[i, :, :3] = T[:3, 3]
+            rays[i, :, 3:] = dirs @ T[:3, :3].T.astype(np.float32)
+        t = self.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)))["t_hit"].numpy()
+        t[~np.isfinite(t)] = np.nan
+        return t.reshape(len(poses), camera.height, camera.width)
 
     def _camera_rays(self, camera: Camera) -> np.ndarray:
         """(H*W, 3) float32 z = 1 rays of ``camera`` (so t_hit is the z-depth); cached."""
@@ -92,10 +79,6 @@ class MeshRaycaster:
         Returns (H, W) float32 z-depth in mm, NaN where the ray misses.
         """
         T = check_rigid(T_world_from_cam, "T_world_from_cam")
-        dirs = self._camera_rays(camera)
-        rays = np.empty((len(dirs), 6), dtype=np.float32)
-        rays[:, :3] = T[:3, 3]
-        rays[:, 3:] = dirs @ T[:3, :3].T.astype(np.float32)
-        t = self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        t[~np.isfinite(t)] = np.nan
-        return t.reshape(camera.shape)
+        if T.shape != (4, 4):
+            raise InvalidInputError("T_world_from_cam", f"expected one (4, 4) pose, got {T.shape}")
+        return self._cast_poses(camera, T[None])[0]

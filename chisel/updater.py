@@ -629,7 +629,8 @@ def update_step(
     if cfg.register:
         renderer = ModelRenderer(model)
         renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
-        if _scale_free(cfg, depth_source):
+        scale_free = _scale_free(cfg, depth_source)
+        if scale_free:
             # Solved once per frame; every stage below starts from the same scales.
             scales = [_try_scale(R, E, cfg) for R, E in zip(renders, estimates, strict=True)]
         else:
@@ -637,9 +638,7 @@ def update_step(
         C = np.eye(4)
         if cfg.sequence_ransac:
             C, seq_reg = _sequence_registration(renderer, camera, poses, estimates, scales, cfg)
-        F, he = _hand_eye(
-            renderer, camera, poses, estimates, scales, C, cfg, _scale_free(cfg, depth_source)
-        )
+        F, he = _hand_eye(renderer, camera, poses, estimates, scales, C, cfg, scale_free)
         seq_reg = {**(seq_reg or {}), "hand_eye": he}
     upd.begin_step(
         hand_eye=F, fixed=F is not None, sequence_registration=seq_reg, renderer=renderer
