@@ -39,6 +39,10 @@ class FormatVersionError(InvalidInputError):
     """A file was written by an incompatible version of an on-disk contract."""
 
 
+class VariantError(InvalidInputError):
+    """No usable Mitsuba variant, or an explicitly requested variant does not work."""
+
+
 class EmptyResultError(ChiselError, RuntimeError):
     """There is nothing to return (empty surface, no valid pixel, no registered frame)."""
 

@@ -2,12 +2,15 @@
 
 Every error names the file or argument and the problem (expected vs actual). They all
 derive from :class:`SimError`, itself a :class:`chisel.errors.InvalidInputError`, so
-callers can catch them as ``ValueError`` or as chisel errors.
+callers can catch them as ``ValueError`` or as chisel errors. ``VariantError`` is
+:class:`chisel.errors.VariantError` (the variant probe, shared with the updater's ray
+caster, lives in :mod:`chisel.mitsuba_variant`).
 """
 
 from __future__ import annotations
 
 from chisel.errors import InvalidInputError
+from chisel.errors import VariantError as VariantError  # the variant probe is chisel's
 
 
 class SimError(InvalidInputError):
@@ -32,7 +35,3 @@ class PathError(SimError):
 
 class PathInTissueError(PathError):
     """A camera path starts (or runs) inside the tissue solid."""
-
-
-class VariantError(SimError):
-    """No usable Mitsuba variant, or an explicitly requested variant does not work."""

@@ -13,7 +13,7 @@ Rendering with distortion: Mitsuba renders an undistorted square-pixel pinhole i
 is remapped onto the raw (distorted) pixel grid with ``cv2.remap``: bilinear for colour,
 nearest neighbour for depth. Ground-truth depth on the JIT variants does not go through
 this remap: it is the exact ray length of :meth:`chisel.geometry.Camera.rays_cam`'s ray
-through each raw pixel centre (:func:`z_depth_from_ray_length`).
+through each raw pixel centre (:func:`chisel.raycast.z_depth_from_ray_length`).
 """
 
 from __future__ import annotations
@@ -173,28 +173,6 @@ def remap_to_camera(image: np.ndarray, grid: RenderGrid, nearest: bool) -> np.nd
         borderValue=0.0,
     )
     return out
-
-
-def unit_rays(rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit ray directions and their z-depth per unit length.
-
-    rays_cam : (H, W, 3) float, rays with z = 1 (OpenCV), as from ``Camera.rays_cam()``.
-    Returns (dirs (H, W, 3) float32 unit vectors, z_per_mm (H, W) float32 = 1 / |r|).
-    """
-    norm = np.linalg.norm(np.asarray(rays_cam, dtype=np.float64), axis=-1)
-    return (rays_cam / norm[..., None]).astype(np.float32), (1.0 / norm).astype(np.float32)
-
-
-def z_depth_from_ray_length(t_mm: np.ndarray, z_per_mm: np.ndarray) -> np.ndarray:
-    """z-depth from the length along *unit* ray directions starting at the optical centre.
-
-    t_mm : (..., H, W) float32, distance along the unit direction ``r / |r|``, inf on a miss.
-    z_per_mm : (H, W) float32 ``1 / |r|`` from :func:`unit_rays` (the ray's z component).
-    Returns (..., H, W) float32 z-depth in mm, NaN on a miss.
-    """
-    z = np.asarray(t_mm, dtype=np.float32) * z_per_mm
-    z[~(np.isfinite(z) & (z > 0))] = np.nan
-    return z
 
 
 def z_depth_from_mitsuba_depth(

@@ -26,6 +26,7 @@ import trimesh
 from tqdm import tqdm
 
 from chisel.atomic import atomic_dir
+from chisel.mitsuba_variant import choose_variant
 from chisel.sequence import Frame, SequenceWriter
 from sim.appearance import TextureVolume, texture_volume
 from sim.collision import TissueDistance
@@ -34,7 +35,6 @@ from sim.paths import PathTarget, check_clearance, eval_poses, intraop_path, pre
 from sim.phantom import Phantom, load_mesh, load_phantom
 from sim.render import MeshRenderer
 from sim.tracking import tracked_poses
-from sim.variant import choose_variant
 
 log = logging.getLogger(__name__)
 

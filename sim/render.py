@@ -25,6 +25,8 @@ import numpy as np
 import trimesh
 
 from chisel.geometry import check_rigid, make_transform
+from chisel.mitsuba_variant import load_mitsuba
+from chisel.raycast import jit_ray_length, unit_rays, z_depth_from_ray_length
 from sim.appearance import TextureVolume
 from sim.config import SimConfig
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain
@@ -33,13 +35,10 @@ from sim.mitsuba_camera import (
     mitsuba_to_world,
     remap_to_camera,
     render_grid,
-    unit_rays,
     z_depth_from_mitsuba_depth,
-    z_depth_from_ray_length,
 )
 from sim.phantom import check_mesh
 from sim.spot_direct import SpotDirectIntegrator
-from sim.variant import load_mitsuba
 
 
 @dataclass(frozen=True)
@@ -224,30 +223,7 @@ class MeshRenderer:
 
         T : (N, 4, 4) float64 checked poses. Frame-major, then row-major pixels; inf = miss.
         """
-        mi, dr = self.mi, self.drjit
-        H, W = self.camera.shape
-        n_pix = H * W
-        idx = dr.arange(mi.UInt32, len(T) * n_pix)
-        if len(T) == 1:
-            # One pose: opaque scalars, loaded once per kernel instead of gathered per ray.
-            pixel = idx
-            R = [dr.opaque(mi.Float, float(x)) for x in T[0, :3, :3].ravel()]
-            o_world = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in T[0, :3, 3]))
-        else:
-            frame = idx // n_pix
-            pixel = idx - frame * n_pix
-            rot = mi.Float(np.ascontiguousarray(T[:, :3, :3].reshape(-1), dtype=np.float32))
-            org = mi.Float(np.ascontiguousarray(T[:, :3, 3].reshape(-1), dtype=np.float32))
-            R = [dr.gather(mi.Float, rot, frame * 9 + k) for k in range(9)]
-            o_world = mi.Point3f(*(dr.gather(mi.Float, org, frame * 3 + k) for k in range(3)))
-        d_cam = dr.gather(mi.Vector3f, self._dirs_cam, pixel)
-        d_world = mi.Vector3f(
-            R[0] * d_cam.x + R[1] * d_cam.y + R[2] * d_cam.z,
-            R[3] * d_cam.x + R[4] * d_cam.y + R[5] * d_cam.z,
-            R[6] * d_cam.x + R[7] * d_cam.y + R[8] * d_cam.z,
-        )
-        si = self.scene.ray_intersect_preliminary(mi.Ray3f(o_world, d_world), coherent=True)
-        return si.t
+        return jit_ray_length(self.mi, self.scene, self._dirs_cam, T)
 
     def _z_depth(self, t: object, n_frames: int) -> np.ndarray:
         H, W = self.camera.shape

@@ -10,6 +10,7 @@ import pytest
 import trimesh
 
 from chisel.geometry import Camera, look_at, make_transform
+from chisel.mitsuba_variant import load_mitsuba
 from chisel.raycast import MeshRaycaster
 from sim.appearance import texture_volume
 from sim.config import ImagingConfig, SimConfig, replace_in
@@ -17,7 +18,6 @@ from sim.imaging import sensor_image
 from sim.render import MeshRenderer
 from sim.spot_direct import PackedTexture, pixel_ray_frames, principled_eval
 from sim.synthetic import toy_meshes
-from sim.variant import load_mitsuba
 
 SMALL = {"camera.width": 64, "camera.height": 48, "imaging.spp": 64}
 T_LOOK_Z = look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0])

@@ -1,4 +1,4 @@
-"""Choosing and loading the Mitsuba variant.
+"""Choosing and loading the Mitsuba variant (the simulator's renderer, the updater's ray caster).
 
 A broken LLVM makes drjit abort the whole process (``LLVM ERROR: Cannot select ...``) the
 first time a real integrator compiles, so a variant is first *probed* in a subprocess
@@ -22,12 +22,12 @@ import sys
 import warnings
 from types import ModuleType
 
-from sim.errors import VariantError
+from chisel.errors import VariantError
 
 log = logging.getLogger(__name__)
 
 VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
-"""Variants the simulator knows, fastest first."""
+"""Variants the project knows, fastest first."""
 
 _LLVM19_CANDIDATES = (
     "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1",
@@ -152,3 +152,28 @@ def load_mitsuba(variant: str = "auto") -> tuple[ModuleType, str]:
     if mi.variant() != chosen:
         mi.set_variant(chosen)
     return mi, chosen
+
+
+def jit_mitsuba() -> ModuleType | None:
+    """Mitsuba on a JIT variant for vectorised ray queries, or None where there is none.
+
+    A variant already set in this process (by the simulator, possibly on request) is kept:
+    switching it would change the types under every live Mitsuba object. Otherwise the
+    ``auto`` choice is set. None when that is ``scalar_rgb`` (no vectorised ray queries)
+    or no variant works; callers then fall back to another ray caster.
+    """
+    configure_llvm_env()
+    try:
+        import mitsuba as mi  # noqa: PLC0415 - imported only after DRJIT_LIBLLVM_PATH is set
+    except ImportError:
+        return None
+    current = mi.variant()
+    if current is None:
+        try:
+            current = choose_variant("auto")
+        except VariantError:
+            return None
+        if current == "scalar_rgb":
+            return None
+        mi.set_variant(current)
+    return mi if current in ("cuda_ad_rgb", "llvm_ad_rgb") else None
