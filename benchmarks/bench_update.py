@@ -21,38 +21,35 @@ Measured, at 320x256 and 0.5 mm voxels by default:
 * peak resident memory of the process.
 
 Goals: update_fps >= 30, fusion_ratio_vs_open3d >= 1.0, peak_rss_mib <= 4096.
-Both fusions are timed best of ``--repeats`` (default 5): Open3D's figure moves by tens
-of % from run to run on this machine even when it is idle.
-Timings on a shared machine are pessimistic; run alone for figures worth quoting.
+Both fusions are timed best of ``--repeats`` (default 9) alternating passes: Open3D's
+figure moves by tens of % from run to run on this machine even when it is idle.
+numba runs on its default threading layer, the one users get (``omp`` here: TBB is too
+old); ``NUMBA_THREADING_LAYER=workqueue`` measures the other one. ``omp`` spin-waits
+and slows down a lot when the CPU is oversubscribed: run alone for figures worth quoting.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
-# numba's default "omp" threading layer spin-waits and collapses (5-10x slower) when the
-# CPU is oversubscribed, as on a shared 2-core machine; "workqueue" degrades gracefully.
-# Set NUMBA_THREADING_LAYER yourself to measure another layer.
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+import numpy as np
+import trimesh
 
-import numpy as np  # noqa: E402
-import trimesh  # noqa: E402
-
-from chisel.depth_source import CallableDepth  # noqa: E402
-from chisel.fusion import integrate  # noqa: E402
-from chisel.geometry import Camera, invert_rigid, look_at, rotation_angle_deg  # noqa: E402
-from chisel.model import TsdfModel  # noqa: E402
-from chisel.raycast import MeshRaycaster  # noqa: E402
-from chisel.sequence import Frame  # noqa: E402
-from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, preop_bounds, update_step  # noqa: E402
+from chisel.depth_source import CallableDepth
+from chisel.fusion import integrate
+from chisel.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
+from chisel.model import TsdfModel
+from chisel.raycast import MeshRaycaster
+from chisel.sequence import Frame
+from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, preop_bounds, update_step
 
 
 def _pose_error(shift_mm: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
@@ -113,21 +110,22 @@ def make_poses(scene: dict, n: int, spread_mm: float, rng: np.random.Generator) 
 
 
 def bench_fusion(model0: TsdfModel, cam: Camera, poses: np.ndarray, depths: list, repeats: int):
+    """Seconds per frame of (ours, Open3D): each the best of ``repeats`` passes over the
+    frames, the passes of the two alternating so that a slow spell of the machine hits
+    both (Open3D's figure moves by tens of % between runs even on an idle machine)."""
     import open3d as o3d
 
-    ours = []
+    K = o3d.core.Tensor(cam.K, o3d.core.float64)
+    trunc_mult = model0.trunc_mm / model0.voxel_size_mm
+    imgs = [o3d.t.geometry.Image(o3d.core.Tensor(np.nan_to_num(d, nan=0.0))) for d in depths]
+    exts = [o3d.core.Tensor(invert_rigid(T), o3d.core.float64) for T in poses]
+    ours, theirs = [], []
     for _ in range(repeats):
         m = model0.copy()
         t0 = time.perf_counter()
         for T, d in zip(poses, depths, strict=True):
             integrate(m, cam, T, d)
         ours.append(time.perf_counter() - t0)
-    K = o3d.core.Tensor(cam.K, o3d.core.float64)
-    trunc_mult = model0.trunc_mm / model0.voxel_size_mm
-    imgs = [o3d.t.geometry.Image(o3d.core.Tensor(np.nan_to_num(d, nan=0.0))) for d in depths]
-    exts = [o3d.core.Tensor(invert_rigid(T), o3d.core.float64) for T in poses]
-    theirs = []
-    for _ in range(repeats):
         vbg = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight"),
             attr_dtypes=(o3d.core.float32, o3d.core.float32),
@@ -158,13 +156,15 @@ def main() -> int:
     ap.add_argument("--voxel-mm", type=float, default=0.5)
     ap.add_argument("--preop-frames", type=int, default=60)
     ap.add_argument("--frames", type=int, default=80)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=9)
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         scene = phantom_scene(args.seed, Path(tmp)) if args.scene == "phantom" else room_scene()
     cam = Camera.from_fov(args.width, args.height, 80.0)
     import numba
+
+    warnings.filterwarnings("ignore", message="The TBB threading layer requires")
 
     print(f"scene: {scene['name']}")
     print(f"cpu_threads: {numba.get_num_threads()}")
@@ -174,6 +174,7 @@ def main() -> int:
     pre = make_poses(scene, args.preop_frames, 10.0, rng)
     rc_pre = MeshRaycaster.from_trimesh(scene["preop"])
     depths = [rc_pre.render_depth(cam, T) for T in pre]
+    print(f"raycast_backend: {rc_pre.backend}")
     cfg = BuildConfig(voxel_size_mm=args.voxel_mm, trunc_mm=4 * args.voxel_mm)
     lo, hi = preop_bounds(scene["preop"], pre, cfg)
     model0 = TsdfModel.empty(lo, hi, cfg.voxel_size_mm, cfg.trunc_mm)

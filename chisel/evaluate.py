@@ -459,7 +459,7 @@ def point_to_mesh_distance(points_mm: np.ndarray, mesh: trimesh.Trimesh) -> np.n
 
     points_mm : (P, 3) float, world mm. Returns (P,) float64 mm (Open3D, float32 inside).
     """
-    rc = MeshRaycaster.from_trimesh(_check_mesh(mesh, "mesh"))
+    rc = MeshRaycaster.from_trimesh(_check_mesh(mesh, "mesh"), backend="open3d")
     pts = o3d.core.Tensor(np.asarray(points_mm, dtype=np.float32).reshape(-1, 3))
     return rc.scene.compute_distance(pts).numpy().astype(np.float64)
 

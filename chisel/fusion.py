@@ -42,11 +42,11 @@ from chisel.geometry import Camera, check_rigid, invert_rigid
 from chisel.model import TsdfModel
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def _clean_depth(depth):
     # No fastmath here: this is where NaN and inf are told apart from depths; <= 0 out.
     out = np.empty(depth.shape, dtype=np.float32)
-    for v in numba.prange(depth.shape[0]):
+    for v in range(depth.shape[0]):
         for u in range(depth.shape[1]):
             d = depth[v, u]
             out[v, u] = d if (d > 0.0 and d < np.inf) else 0.0
@@ -64,7 +64,7 @@ def _weights_ok(pix_w):
     return True
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def _tile_depth(depth, pix_w, use_weight, offsets, pixels):
     # Per tile, the largest depth among the active pixels that a voxel of the tile may
     # project to (0 = none): ``pixels[offsets[t]:offsets[t + 1]]`` lists them (flat).
@@ -72,7 +72,7 @@ def _tile_depth(depth, pix_w, use_weight, offsets, pixels):
     w_flat = pix_w.reshape(-1)
     n = offsets.shape[0] - 1
     out = np.zeros(n, dtype=np.float32)
-    for t in numba.prange(n):
+    for t in range(n):
         m = np.float32(0.0)
         for j in range(offsets[t], offsets[t + 1]):
             p = pixels[j]
