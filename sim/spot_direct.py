@@ -19,6 +19,10 @@ mean of its ``spp`` samples (box filter). What it does not do, and why it is fas
   shadow rays of a pixel leave one point in almost one direction (a coherent packet);
   with the light at the optical centre the shadow test is skipped, exactly: the primary
   ray already proved the point visible from there;
+- the hit is Embree's preliminary one (distance, triangle, barycentrics): the point is
+  ``o + t d`` and the shading normal the interpolated vertex normal, which is all the
+  light and the BSDF need, instead of Mitsuba's full surface interaction (frames,
+  derivatives, UVs);
 - the BSDF and the texture are written into the kernel (:func:`principled_eval`, the
   lobes the tissue uses, and :class:`PackedTexture`, one RGBA packet read per trilinear
   corner) instead of calling Mitsuba's BSDF, whose ``volume`` texture reads each corner
@@ -214,8 +218,17 @@ class SpotDirectIntegrator:
         import drjit as dr  # noqa: PLC0415 - only after mitsuba picked the variant
 
         self.mi, self.dr, self.scene = mi, dr, scene
-        # Position and shading normal are all the BSDF and the light need (no UVs).
-        self._ray_flags = mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame
+        shapes = scene.shapes()
+        if len(shapes) != 1 or not shapes[0].is_mesh() or not shapes[0].has_vertex_normals():
+            raise ValueError(
+                "SpotDirectIntegrator: the scene must hold one mesh with vertex normals"
+            )
+        # The kernel interpolates the shading normal itself from the preliminary hit (the
+        # BSDF and the light need nothing else), instead of Mitsuba's full surface
+        # interaction: same normal to float precision, ~5 % less time per frame.
+        mesh_params = mi.traverse(shapes[0])
+        self._faces = mi.UInt32(mesh_params["faces"])
+        self._vertex_normals = mi.Float(mesh_params["vertex_normals"])
         self.shape = camera.shape
         self.used = np.asarray(used, dtype=bool).ravel()
         ray, d_du, d_dv = pixel_ray_frames(camera, used)
@@ -280,12 +293,18 @@ class SpotDirectIntegrator:
             R[3] * d.x + R[4] * d.y + R[5] * d.z,
             R[6] * d.x + R[7] * d.y + R[8] * d.z,
         )
-        si = self.scene.ray_intersect(
-            mi.Ray3f(origin, d_world), ray_flags=self._ray_flags, coherent=True
+        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(origin, d_world), coherent=True)
+        active = pi.is_valid()
+        p = origin + d_world * pi.t
+        corners = dr.gather(mi.Vector3u, self._faces, pi.prim_index, active)
+        b1, b2 = pi.prim_uv.x, pi.prim_uv.y
+        normal = dr.normalize(
+            dr.gather(mi.Vector3f, self._vertex_normals, corners.x, active) * (1.0 - b1 - b2)
+            + dr.gather(mi.Vector3f, self._vertex_normals, corners.y, active) * b1
+            + dr.gather(mi.Vector3f, self._vertex_normals, corners.z, active) * b2
         )
-        active = si.is_valid()
 
-        to_light = lp - si.p
+        to_light = lp - p
         dist2 = dr.squared_norm(to_light)
         dist = dr.sqrt(dist2)
         wo = to_light / dist
@@ -301,8 +320,8 @@ class SpotDirectIntegrator:
             shadow = mi.Ray3f(lp, -wo)
             shadow.maxt = dist * (1.0 - 1e-4)
             active &= ~self.scene.ray_test(shadow, coherent=True, active=active)
-        base = self.texture.eval(si.p)
-        f = principled_eval(dr, si.sh_frame.n, -d_world, wo, base, self.roughness, self.eta)
+        base = self.texture.eval(p)
+        f = principled_eval(dr, normal, -d_world, wo, base, self.roughness, self.eta)
         value = dr.select(active, f * (self._intensity * falloff / dist2), 0.0)
         # One kernel for all three channels (a per-channel block sum would trace it thrice).
         dr.eval(value)
