@@ -18,13 +18,21 @@ import numpy as np
 
 from sim.config import AppearanceConfig, SimConfig
 
+TEXEL_LEVELS = 1023
+"""Texel values are quantised to ``k / 1023`` (10 bits per channel): the renderer packs a
+texel into one 32-bit word (``sim.spot_direct.PackedTexture``), a quarter of the memory
+traffic of 4 floats, and Mitsuba's reference texture then reads exactly the same values.
+The step, 0.001 in linear albedo, moves an 8-bit pixel by at most about 0.2 of a level
+(trilinear filtering interpolates between texels, so it makes no bands)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class TextureVolume:
     """A baked colour volume over an axis-aligned world box."""
 
     rgb: np.ndarray
-    """(nz, ny, nx, 3) float32 linear RGB in [0, 1]; index [k, j, i] = voxel (x_i, y_j, z_k)."""
+    """(nz, ny, nx, 3) float32 linear RGB in [0, 1]; index [k, j, i] = voxel (x_i, y_j, z_k).
+    Baked values are multiples of 1 / :data:`TEXEL_LEVELS` (10 bits per channel)."""
     box_mm: np.ndarray
     """(2, 3) float64 [[xmin, ymin, zmin], [xmax, ymax, zmax]] the grid spans, mm."""
 
@@ -77,7 +85,8 @@ def texture_volume(box_mm: np.ndarray, cfg: AppearanceConfig, seed: int) -> Text
     """Bake the mucosa colour over ``box_mm`` ((2, 3) float, mm) with a seeded pattern.
 
     The voxel size is ``cfg.texture_voxel_mm``, coarsened so the grid stays within
-    ``cfg.max_texture_voxels``. Same box, config and seed -> same bytes.
+    ``cfg.max_texture_voxels``; values are quantised to 10 bits (:data:`TEXEL_LEVELS`).
+    Same box, config and seed -> same bytes.
     """
     box = np.asarray(box_mm, dtype=np.float64)
     extent = np.maximum(box[1] - box[0], 1e-3)
@@ -102,7 +111,8 @@ def texture_volume(box_mm: np.ndarray, cfg: AppearanceConfig, seed: int) -> Text
     vessels = np.maximum(np.exp(-((ves1 / w) ** 2)), 0.5 * np.exp(-((ves2 / (0.6 * w)) ** 2)))
     weight = (cfg.vessel_strength * vessels)[..., None]
     rgb = (1.0 - weight) * rgb + weight * np.asarray(cfg.vessel_rgb, dtype=np.float32)
-    return TextureVolume(np.clip(rgb, 0.0, 1.0).astype(np.float32), box)
+    levels = np.round(np.clip(rgb, 0.0, 1.0) * TEXEL_LEVELS)
+    return TextureVolume((levels / TEXEL_LEVELS).astype(np.float32), box)
 
 
 def randomize(cfg: SimConfig, seed: int) -> SimConfig:
