@@ -284,6 +284,14 @@ class SurfaceIndex:
             )
             self._cache = np.full(int(np.prod(shape)), -2, dtype=np.int32)  # -2 = not looked up
 
+    @property
+    def grid(self) -> tuple[np.ndarray, float, np.ndarray, np.ndarray] | None:
+        """(origin_mm, voxel_mm, shape (3,) int64, memo (flat int32)) or None without a grid."""
+        if self._grid is None:
+            return None
+        origin, voxel, shape = self._grid
+        return origin, voxel, np.asarray(shape, dtype=np.int64), self._cache
+
     def query(self, points_mm: np.ndarray, dist_mm: float) -> tuple[np.ndarray, np.ndarray]:
         """Nearest surface vertex within ``dist_mm``: (distance (N,), index (N,)).
 
@@ -387,21 +395,127 @@ def _normal_equations(y_rel, c_new, idx, points, normals, k, with_scale):
     return A, b, wsum, count
 
 
-def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
-    a = float(np.linalg.norm(w))
+@numba.njit(cache=True)
+def _rotvec_to_matrix(w):
+    """(3, 3) rotation of a rotation vector (Rodrigues)."""
+    a = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    out = np.eye(3)
     if a < 1e-15:
-        return np.eye(3)
-    k = w / a
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+        return out
+    k0, k1, k2 = w[0] / a, w[1] / a, w[2] / a
+    K = np.array([[0.0, -k2, k1], [k2, 0.0, -k0], [-k1, k0, 0.0]])
+    return out + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
 
 
-def _matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+@numba.njit(cache=True)
+def _matrix_to_rotvec(R):
     """Rotation vector of a (3, 3) rotation (small-angle safe; angles well below 180 deg)."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    a = float(np.arccos(c))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return v * (0.5 if a < 1e-8 else a / (2.0 * np.sin(a)))
+    c = min(max((R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0, -1.0), 1.0)
+    a = np.arccos(c)
+    f = 0.5 if a < 1e-8 else a / (2.0 * np.sin(a))
+    return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) * f
+
+
+@numba.njit(cache=True)
+def _solve_spd(A, b):
+    """x with A x = b by Gaussian elimination with partial pivoting; (x, ok)."""
+    m = A.shape[0]
+    M = A.copy()
+    x = b.copy()
+    for col in range(m):
+        piv = col
+        for r in range(col + 1, m):
+            if abs(M[r, col]) > abs(M[piv, col]):
+                piv = r
+        if not abs(M[piv, col]) > 0.0:  # also catches NaN
+            return x, False
+        if piv != col:
+            for q in range(m):
+                M[col, q], M[piv, q] = M[piv, q], M[col, q]
+            x[col], x[piv] = x[piv], x[col]
+        for r in range(col + 1, m):
+            f = M[r, col] / M[col, col]
+            for q in range(col, m):
+                M[r, q] -= f * M[col, q]
+            x[r] -= f * x[col]
+    for col in range(m - 1, -1, -1):
+        acc = x[col]
+        for q in range(col + 1, m):
+            acc -= M[col, q] * x[q]
+        x[col] = acc / M[col, col]
+    return x, True
+
+
+# Outcomes of :func:`_icp_iterate`.
+_RAN_OUT, _CONVERGED, _STOPPED, _NEED_LOOKUP = 0, 1, 2, 3
+
+
+@numba.njit(cache=True)
+def _icp_iterate(
+    rel, sigma, R, c_new, idx_given, grid_origin, voxel, grid_shape, cache, use_grid,
+    points, normals, dist, k, with_scale, prior, pose_prior, c_prior, R_prior, rho2, max_iter,
+):  # fmt: skip
+    """Up to ``max_iter`` ICP iterations at one correspondence distance, in one call.
+
+    Correspondences come from the memo grid of :class:`SurfaceIndex` (``use_grid``), or,
+    for one iteration only, from ``idx_given``. Returns (R, c_new, sigma, iterations
+    started, outcome): ``_NEED_LOOKUP`` means a point fell in a voxel not looked up yet
+    (nothing was done for that iteration: fill the memo and call again), ``_STOPPED``
+    fewer than 10 correspondences or a singular system, ``_CONVERGED`` the update fell
+    below rotation 2e-5 rad, shift 1e-3 mm, scale 2e-5.
+    """
+    n = rel.shape[0]
+    npts = points.shape[0]
+    y_rel = np.empty((n, 3))
+    y = np.empty((n, 3))
+    m = 7 if with_scale else 6
+    for it in range(max_iter):
+        for a in range(n):
+            for r in range(3):
+                v = sigma * (R[r, 0] * rel[a, 0] + R[r, 1] * rel[a, 1] + R[r, 2] * rel[a, 2])
+                y_rel[a, r] = v
+                y[a, r] = v + c_new[r]
+        if use_grid:
+            _, idx = _grid_nearest(y, grid_origin, voxel, grid_shape, cache, points, dist)
+            for a in range(n):
+                if idx[a] == -2:
+                    return R, c_new, sigma, it, _NEED_LOOKUP
+                if idx[a] < 0:
+                    idx[a] = npts
+        else:
+            idx = idx_given
+        A, b, wsum, count = _normal_equations(y_rel, c_new, idx, points, normals, k, with_scale)
+        if count < 10:
+            return R, c_new, sigma, it + 1, _STOPPED
+        if prior:
+            lam = pose_prior * wsum
+            lam_r = lam * rho2
+            dR = _matrix_to_rotvec(R_prior @ R.T)
+            for r in range(3):
+                A[3 + r, 3 + r] += lam
+                b[3 + r] += lam * (c_prior[r] - c_new[r])
+                A[r, r] += lam_r
+                b[r] += lam_r * dR[r]
+        tr = 0.0
+        for r in range(m):
+            tr += A[r, r]
+        for r in range(m):
+            A[r, r] += 1e-9 * tr + 1e-12
+        x, ok = _solve_spd(A, b)
+        if not ok:
+            return R, c_new, sigma, it + 1, _STOPPED
+        R = _rotvec_to_matrix(x[:3]) @ R
+        c_new = c_new + x[3:6]
+        if with_scale:
+            sigma *= np.exp(x[6])
+        small = (
+            max(abs(x[0]), abs(x[1]), abs(x[2])) < 2e-5
+            and max(abs(x[3]), abs(x[4]), abs(x[5])) < 1e-3
+            and (not with_scale or abs(x[6]) < 2e-5)
+        )
+        if small:
+            return R, c_new, sigma, it + 1, _CONVERGED
+    return R, c_new, sigma, max_iter, _RAN_OUT
 
 
 @dataclass
@@ -461,41 +575,34 @@ def icp_similarity(
     # (A scale from the render at the tracked pose can be off by tens of % in a tube.)
     skip = prior and not estimate_scale and len(cfg.icp_max_dist_mm) > 1
     dists = cfg.icp_max_dist_mm[1:] if skip else cfg.icp_max_dist_mm
+    grid = surface.grid
+    no_cache = np.zeros(1, dtype=np.int32)
     for dist in dists:
         k = max(cfg.tukey_k_mm, dist / 2.0)
-        for _ in range(cfg.icp_max_iter):
-            it += 1
-            y_rel = sigma * rel @ R.T
-            y = y_rel + c_new
-            _, idx = surface.query(y, dist)
-            A, b, wsum, count = _normal_equations(
-                y_rel, c_new, idx, surface.points, surface.normals, k, estimate_scale
-            )
-            if count < 10:
-                break
-            lam = cfg.pose_prior * wsum if prior else 0.0
-            A[3:6, 3:6] += lam * np.eye(3)
-            b[3:6] += lam * (c_prior - c_new)
-            if prior:
-                # Rotation prior, in mm at the points' typical distance from the camera.
-                lam_r = lam * rho2
-                A[0:3, 0:3] += lam_r * np.eye(3)
-                b[0:3] += lam_r * _matrix_to_rotvec(R_prior @ R.T)
-            A += np.eye(len(A)) * (1e-9 * np.trace(A) + 1e-12)
-            try:
-                x = np.linalg.solve(A, b)
-            except np.linalg.LinAlgError:
-                break
-            R = _rotvec_to_matrix(x[:3]) @ R
-            c_new = c_new + x[3:6]
-            if estimate_scale:
-                sigma *= float(np.exp(x[6]))
-            # Converged: rotation < 2e-5 rad, shift < 1e-3 mm, scale < 2e-5.
-            if (
-                np.abs(x[:3]).max() < 2e-5
-                and np.abs(x[3:6]).max() < 1e-3
-                and (not estimate_scale or abs(x[6]) < 2e-5)
-            ):
+        # The memo grid answers every lookup inside numba; a voxel met for the first time
+        # (or a search beyond the memo's reach) comes back here for the k-d tree.
+        use_grid = grid is not None and dist <= surface.max_dist_mm
+        left = cfg.icp_max_iter
+        while left > 0:
+            if use_grid:
+                assert grid is not None
+                origin, voxel, shape_a, cache = grid
+                idx = np.zeros(0, dtype=np.int64)
+                budget = left
+            else:
+                origin, voxel, shape_a, cache = np.zeros(3), 1.0, np.ones(3, np.int64), no_cache
+                _, idx = surface.query(sigma * rel @ R.T + c_new, dist)
+                budget = 1
+            R, c_new, sigma, started, outcome = _icp_iterate(
+                rel, sigma, R, c_new, idx, origin, voxel, shape_a, cache, use_grid,
+                surface.points, surface.normals, dist, k, estimate_scale, prior,
+                cfg.pose_prior, c_prior, R_prior, rho2, budget,
+            )  # fmt: skip
+            it += started
+            left -= started
+            if outcome == _NEED_LOOKUP:
+                surface.query(sigma * rel @ R.T + c_new, dist)  # fills the memo
+            elif outcome != _RAN_OUT:
                 break
     T = np.eye(4)
     T[:3, :3] = R
