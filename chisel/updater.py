@@ -103,7 +103,9 @@ class UpdateConfig:
     register: bool = True
     """False = the paper's registration ablation: scale only, no RANSAC/ICP."""
     sequence_ransac: bool = True
-    """Batch mode: run RANSAC + ICP on the whole step's point cloud before per-frame ICP."""
+    """Batch mode: when ICP from the tracked poses does not register the step (no frame,
+    or a median fitness below ``MIN_TRACKER_FITNESS``), first register the whole step's
+    point cloud globally (FPFH + RANSAC + ICP)."""
     solve_scale: Literal["auto", "always", "never"] = "auto"
     """Solve the depth's scale (robust median of ratios to the render, then jointly with
     the pose in per-frame ICP): "auto" = unless the depth source declares metric depth
@@ -126,6 +128,10 @@ class UpdateConfig:
             raise InvalidInputError("max_points", "use at least 100 points per frame")
         if self.hand_eye_frames < 1:
             raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")
+
+
+MIN_TRACKER_FITNESS = 0.5
+"""Batch mode: below this median ICP fitness from the tracked poses, search globally."""
 
 
 # ---------------------------------------------------------------------------- rendering
@@ -635,11 +641,18 @@ def update_step(
             scales = [_try_scale(R, E, cfg) for R, E in zip(renders, estimates, strict=True)]
         else:
             scales = [1.0] * len(frames)
-        C = np.eye(4)
-        if cfg.sequence_ransac:
-            C, seq_reg = _sequence_registration(renderer, camera, poses, estimates, scales, cfg)
-        F, he = _hand_eye(renderer, camera, poses, estimates, scales, C, cfg, scale_free)
-        seq_reg = {**(seq_reg or {}), "hand_eye": he}
+        # The tracker first: ICP from the tracked poses. A global search (FPFH + RANSAC over
+        # the whole step) only when that fails: on a monocular estimate, whose shape is not
+        # quite the model's, it can lock onto a fit rotated by several degrees, which then
+        # carves unchanged tissue (6-12 deg on the default experiment's network depth).
+        args = (renderer, camera, poses, estimates, scales)
+        F, he = _hand_eye(*args, np.eye(4), cfg, scale_free)
+        seq_reg = {"ok": True, "method": "tracker", "reason": "ICP from the tracked poses"}
+        if cfg.sequence_ransac and (F is None or he["fitness_median"] < MIN_TRACKER_FITNESS):
+            log.info("ICP from the tracked poses did not register (%s): global search", he)
+            C, seq_reg = _sequence_registration(*args, cfg)
+            F, he = _hand_eye(*args, C, cfg, scale_free)
+        seq_reg = {**seq_reg, "hand_eye": he}
     upd.begin_step(
         hand_eye=F, fixed=F is not None, sequence_registration=seq_reg, renderer=renderer
     )
@@ -721,7 +734,7 @@ def _hand_eye(
     if len(usable) > cfg.hand_eye_frames:
         pick = np.linspace(0, len(usable) - 1, cfg.hand_eye_frames).round().astype(int)
         usable = [usable[i] for i in pick]
-    Fs = []
+    Fs, fits = [], []
     for i in usable:
         T, E, s0 = poses[i], estimates[i], float(scales[i])
         src = _points(camera, s0 * E, T, cfg.sequence_points)
@@ -731,12 +744,20 @@ def _hand_eye(
         res = check_result(
             sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg
         )
+        fits.append(sim.fitness if res.ok else 0.0)
         if res.ok:
             Fs.append(invert_rigid(T) @ res.T_model_from_est @ T)
+    fitness = float(np.median(fits)) if fits else 0.0
     if not Fs:
-        return None, {"ok": False, "frames": 0, "reason": "no frame registered in the first pass"}
+        return None, {
+            "ok": False, "frames": 0, "fitness_median": fitness,
+            "reason": "no frame registered in the first pass",
+        }  # fmt: skip
     F = robust_mean_transform(Fs)
-    return F, {"ok": True, "frames": len(Fs), "T_cam_from_corrected_cam": F.tolist()}
+    return F, {
+        "ok": True, "frames": len(Fs), "fitness_median": fitness,
+        "T_cam_from_corrected_cam": F.tolist(),
+    }  # fmt: skip
 
 
 def _sequence_registration(

@@ -121,6 +121,29 @@ def test_registration_recovers_pose_error_and_scale(scene: dict) -> None:
     assert np.percentile(_distance_to(scene["bitten"], region), 95) < VOXEL
 
 
+def test_global_search_only_when_the_tracker_is_far_off(scene: dict, monkeypatch) -> None:
+    import chisel.updater as updater_mod
+
+    cam, model = scene["cam"], scene["model"]
+    P = poses(8, seed=2)
+    src = CallableDepth(lambda f: f.depth_mm * 0.037)
+    near = np.stack([T @ pose_error(1.0, 1.0, seed=3) for T in P])
+    _, report = update_step(model, cam, frames(scene["bitten"], cam, P, near), src)
+    assert report.sequence_registration["method"] == "tracker"
+    # Pretend ICP from the tracker failed: the step is registered globally instead.
+    monkeypatch.setattr(updater_mod, "MIN_TRACKER_FITNESS", 1.01)
+    _, report = update_step(model, cam, frames(scene["bitten"], cam, P, near), src)
+    assert report.sequence_registration["method"] != "tracker"
+    assert report.sequence_registration["hand_eye"]["ok"]
+    for f in report.frames:
+        D = (
+            invert_rigid(P[f.index])
+            @ np.asarray(f.registration["T_model_from_est"])
+            @ near[f.index]
+        )
+        assert np.linalg.norm(D[:3, 3]) < 0.3 and rotation_angle_deg(D[:3, :3]) < 0.3, f.index
+
+
 def test_registration_ablation_and_threshold(scene: dict) -> None:
     cam, model = scene["cam"], scene["model"]
     P = poses(6, seed=5)
