@@ -57,6 +57,12 @@ class RegistrationConfig:
     as a fraction of the total correspondence weight per mm^2. It breaks the scale /
     distance ambiguity of a nearly planar view and costs a bias of about this fraction of
     the true offset in well-constrained directions."""
+    tracking_accuracy_mm: float = 3.0
+    """Batch mode: the tracker's accuracy (hand-eye calibration included), mm. A step whose
+    hand-eye correction F moves the camera further than this is not registered: the
+    correction explains the depth estimate's shape error, not the pose."""
+    tracking_accuracy_deg: float = 3.0
+    """The same for F's rotation, degrees."""
     seed: int = 0
     """Seed of Open3D's random generator (RANSAC sampling): same seed, same result."""
 
@@ -66,6 +72,11 @@ class RegistrationConfig:
         if not self.icp_max_dist_mm or min(self.icp_max_dist_mm) <= 0:
             raise InvalidInputError(
                 "icp_max_dist_mm", f"need positive distances, got {self.icp_max_dist_mm}"
+            )
+        if self.tracking_accuracy_mm <= 0 or self.tracking_accuracy_deg <= 0:
+            raise InvalidInputError(
+                "tracking_accuracy",
+                f"must be > 0, got {self.tracking_accuracy_mm} mm / {self.tracking_accuracy_deg} deg",
             )
         if self.tukey_k_mm <= 0 or self.fitness_dist_mm <= 0:
             raise InvalidInputError("tukey_k_mm", "kernel width and fitness distance must be > 0")

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -47,7 +47,7 @@ from chisel.change import (
 from chisel.depth_source import is_metric
 from chisel.errors import EmptyResultError, InvalidInputError, PoseError
 from chisel.fusion import check_pose_in_model, integrate
-from chisel.geometry import Camera, check_rigid, invert_rigid, transform_points
+from chisel.geometry import Camera, check_rigid, invert_rigid, rotation_angle_deg, transform_points
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
 from chisel.raycast import MeshRaycaster
@@ -562,8 +562,6 @@ def _scale_free(cfg: UpdateConfig, source: object) -> bool:
 
 
 def _with_step(model: TsdfModel, step: int) -> TsdfModel:
-    from dataclasses import replace
-
     return replace(model, step=step)
 
 
@@ -653,6 +651,22 @@ def update_step(
             C, seq_reg = _sequence_registration(*args, cfg)
             F, he = _hand_eye(*args, C, cfg, scale_free)
         seq_reg = {**seq_reg, "hand_eye": he}
+        if F is not None and not _within_tracking_accuracy(F, cfg.registration):
+            # A monocular estimate whose shape differs from the model's pulls ICP to a
+            # "correction" the tracker cannot need (6-12 deg on the default experiment's
+            # network depth, true hand-eye error 0.5 deg); placed that way, the estimate
+            # carves unchanged tissue. Trust the tracker for this step instead.
+            shift_mm, angle_deg = float(np.linalg.norm(F[:3, 3])), rotation_angle_deg(F[:3, :3])
+            reason = (
+                f"hand-eye correction {shift_mm:.2f} mm / {angle_deg:.2f} deg exceeds the "
+                f"tracking accuracy ({cfg.registration.tracking_accuracy_mm} mm / "
+                f"{cfg.registration.tracking_accuracy_deg} deg): the step is placed with "
+                "the tracked poses, scale only"
+            )
+            log.warning("%s", reason)
+            seq_reg = {**seq_reg, "rejected": reason}
+            upd = ChiselUpdater(model, camera, depth_source, replace(cfg, register=False))
+            F = None
     upd.begin_step(
         hand_eye=F, fixed=F is not None, sequence_registration=seq_reg, renderer=renderer
     )
@@ -710,6 +724,14 @@ def confirm_changes(reps: list[FrameReport], camera: Camera, cfg: ChangeConfig) 
         new = clean_mask(m & k, cfg)
         r.unconfirmed_px = int(m.sum() - new.sum())
         r.mask = new
+
+
+def _within_tracking_accuracy(F: np.ndarray, rcfg: RegistrationConfig) -> bool:
+    """Whether the camera-side correction F is one the tracker can need."""
+    return (
+        float(np.linalg.norm(F[:3, 3])) <= rcfg.tracking_accuracy_mm
+        and rotation_angle_deg(F[:3, :3]) <= rcfg.tracking_accuracy_deg
+    )
 
 
 def _hand_eye(

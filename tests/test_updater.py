@@ -30,6 +30,7 @@ from chisel.geometry import invert_rigid, rotation_angle_deg
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
 from chisel.raycast import MeshRaycaster
+from chisel.registration import RegistrationConfig
 from chisel.sequence import Frame
 from chisel.updater import (
     BuildConfig,
@@ -142,6 +143,25 @@ def test_global_search_only_when_the_tracker_is_far_off(scene: dict, monkeypatch
             @ near[f.index]
         )
         assert np.linalg.norm(D[:3, 3]) < 0.3 and rotation_angle_deg(D[:3, :3]) < 0.3, f.index
+
+
+def test_correction_beyond_tracking_accuracy_is_not_applied(scene: dict) -> None:
+    # A true 2 mm / 2 deg error, but the tracker is declared accurate to 1 deg: the
+    # hand-eye correction is taken for the estimate's shape error and the step is placed
+    # with the tracked poses (scale only), and the report says why.
+    cam, model = scene["cam"], scene["model"]
+    P = poses(8, seed=2)
+    tracked = np.stack([T @ pose_error(2.0, 2.0, seed=3) for T in P])
+    src = CallableDepth(lambda f: f.depth_mm * 0.037)
+    strict = UpdateConfig(registration=RegistrationConfig(tracking_accuracy_deg=1.0))
+    fr = frames(scene["bitten"], cam, P, tracked)
+    _, report = update_step(model, cam, fr, src, strict)
+    assert "exceeds the tracking accuracy" in report.sequence_registration["rejected"]
+    assert report.frames_used == list(range(8))
+    assert all(f.registration is None and f.scale is not None for f in report.frames)
+    _, report = update_step(model, cam, fr, src)  # 3 mm / 3 deg: registered
+    assert "rejected" not in report.sequence_registration
+    assert all(f.registration is not None for f in report.frames)
 
 
 def test_registration_ablation_and_threshold(scene: dict) -> None:

@@ -133,6 +133,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=0.8,
         help="... and at least this fraction of the frames that see it (0.8)",
     )
+    p.add_argument(
+        "--tracking-accuracy-mm",
+        type=float,
+        default=3.0,
+        help="the tracker's accuracy, hand-eye calibration included (3.0 mm): a step whose "
+        "hand-eye correction moves the camera further is not registered (tracked poses, "
+        "scale only) and the report says so",
+    )
+    p.add_argument(
+        "--tracking-accuracy-deg",
+        type=float,
+        default=3.0,
+        help="the same for the correction's rotation (3.0 deg)",
+    )
     p.add_argument("--max-frames", type=int, default=None, help="use the first N frames only")
     p.add_argument(
         "--depth-noise-mm",
@@ -268,7 +282,12 @@ def _cmd_update(args: argparse.Namespace) -> int:
             min_views=args.min_views,
             min_agreement=args.min_agreement,
         ),
-        registration=RegistrationConfig(min_fitness=args.min_fitness, seed=args.seed),
+        registration=RegistrationConfig(
+            min_fitness=args.min_fitness,
+            seed=args.seed,
+            tracking_accuracy_mm=args.tracking_accuracy_mm,
+            tracking_accuracy_deg=args.tracking_accuracy_deg,
+        ),
         register=not args.no_registration,
         allow_unused_step=args.allow_unused_step,
     )

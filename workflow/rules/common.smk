@@ -118,6 +118,8 @@ def update_options(wc, input):
         f"--noise-k {UC.get('noise_k', 3.0)}",
         f"--min-views {UC.get('min_views', 5)}",
         f"--min-agreement {UC.get('min_agreement', 0.8)}",
+        f"--tracking-accuracy-mm {UC.get('tracking_accuracy_mm', 3.0)}",
+        f"--tracking-accuracy-deg {UC.get('tracking_accuracy_deg', 3.0)}",
         "--allow-unused-step",
     ]
     opts.append(f"--depth-source sequence:{input.pred}" if depth == "network" else "--depth-source gt")
