@@ -463,7 +463,7 @@ class ChiselUpdater:
         if reg_res is not None and not reg_res.ok:
             rep.reason = f"registration failed: {reg_res.reason}"
             return rep
-        if reg_res is not None:
+        if reg_res is not None and "rejected" not in reg_res.extra:
             self._F_hist.append(invert_rigid(T) @ reg_res.T_model_from_est @ T)
         m_prime = impute(m_raw, R)
         rep.threshold_mm = frame_threshold(m_raw, R, self.cfg.change)
@@ -553,6 +553,15 @@ class ChiselUpdater:
             return np.full_like(E, np.nan), s, res
         # Registered estimate (camera at C @ T) re-projected into the tracked camera T.
         T_tracked_from_registered = invert_rigid(T) @ res.T_model_from_est @ T
+        if not _within_tracking_accuracy(T_tracked_from_registered, rcfg):
+            # As for a whole step (update_step): a correction the tracker cannot need is
+            # the estimate's shape error; the frame keeps its tracked pose, scale only.
+            res.extra["rejected"] = (
+                "correction exceeds the tracking accuracy "
+                f"({rcfg.tracking_accuracy_mm} mm / {rcfg.tracking_accuracy_deg} deg): "
+                "tracked pose, scale only"
+            )
+            return (s0 * E).astype(np.float32), s0, res
         return warp_depth(s * E, self.camera, T_tracked_from_registered), s, res
 
 

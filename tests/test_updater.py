@@ -164,6 +164,29 @@ def test_correction_beyond_tracking_accuracy_is_not_applied(scene: dict) -> None
     assert all(f.registration is not None for f in report.frames)
 
 
+def test_streaming_frames_beyond_tracking_accuracy_keep_the_tracked_pose(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    P = poses(4, seed=2)
+    tracked = np.stack([T @ pose_error(2.0, 2.0, seed=3) for T in P])
+    src = CallableDepth(lambda f: f.depth_mm * 0.037)
+    strict = UpdateConfig(registration=RegistrationConfig(tracking_accuracy_deg=1.0))
+    upd = ChiselUpdater(model, cam, src, strict)
+    upd.begin_step()
+    reps = [upd.process(f) for f in frames(scene["bitten"], cam, P, tracked)]
+    assert all(r.used and "tracking accuracy" in r.registration["rejected"] for r in reps)
+    np.testing.assert_array_equal(upd.hand_eye, np.eye(4))  # nothing learnt from them
+    # 3 mm / 3 deg: the corrections of the 2 mm / 2 deg error are applied. (The first
+    # frame, registered from the tracker without a prior, may land far off and is then
+    # placed with its tracked pose instead of the wrong correction.)
+    upd = ChiselUpdater(model, cam, src)
+    upd.begin_step()
+    reps = [upd.process(f) for f in frames(scene["bitten"], cam, P, tracked)]
+    applied = [r for r in reps if "rejected" not in r.registration]
+    assert all(r.used for r in reps) and len(applied) >= 3
+    for r in applied:
+        assert r.registration["correction_deg"] <= 3.0
+
+
 def test_registration_ablation_and_threshold(scene: dict) -> None:
     cam, model = scene["cam"], scene["model"]
     P = poses(6, seed=5)
