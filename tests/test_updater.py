@@ -145,16 +145,22 @@ def test_global_search_only_when_the_tracker_is_far_off(scene: dict, monkeypatch
         assert np.linalg.norm(D[:3, 3]) < 0.3 and rotation_angle_deg(D[:3, :3]) < 0.3, f.index
 
 
+def _two_degree_error(scene: dict, n: int) -> tuple:
+    """Frames with a true 2 mm / 2 deg tracking error, a scale-free depth, and a config
+    that declares the tracker accurate to 1 deg: (cam, model, frames, source, config)."""
+    P = poses(n, seed=2)
+    tracked = np.stack([T @ pose_error(2.0, 2.0, seed=3) for T in P])
+    fr = frames(scene["bitten"], scene["cam"], P, tracked)
+    src = CallableDepth(lambda f: f.depth_mm * 0.037)
+    strict = UpdateConfig(registration=RegistrationConfig(tracking_accuracy_deg=1.0))
+    return scene["cam"], scene["model"], fr, src, strict
+
+
 def test_correction_beyond_tracking_accuracy_is_not_applied(scene: dict) -> None:
     # A true 2 mm / 2 deg error, but the tracker is declared accurate to 1 deg: the
     # hand-eye correction is taken for the estimate's shape error and the step is placed
     # with the tracked poses (scale only), and the report says why.
-    cam, model = scene["cam"], scene["model"]
-    P = poses(8, seed=2)
-    tracked = np.stack([T @ pose_error(2.0, 2.0, seed=3) for T in P])
-    src = CallableDepth(lambda f: f.depth_mm * 0.037)
-    strict = UpdateConfig(registration=RegistrationConfig(tracking_accuracy_deg=1.0))
-    fr = frames(scene["bitten"], cam, P, tracked)
+    cam, model, fr, src, strict = _two_degree_error(scene, 8)
     _, report = update_step(model, cam, fr, src, strict)
     assert "exceeds the tracking accuracy" in report.sequence_registration["rejected"]
     assert report.frames_used == list(range(8))
@@ -165,14 +171,10 @@ def test_correction_beyond_tracking_accuracy_is_not_applied(scene: dict) -> None
 
 
 def test_streaming_frames_beyond_tracking_accuracy_keep_the_tracked_pose(scene: dict) -> None:
-    cam, model = scene["cam"], scene["model"]
-    P = poses(4, seed=2)
-    tracked = np.stack([T @ pose_error(2.0, 2.0, seed=3) for T in P])
-    src = CallableDepth(lambda f: f.depth_mm * 0.037)
-    strict = UpdateConfig(registration=RegistrationConfig(tracking_accuracy_deg=1.0))
+    cam, model, fr, src, strict = _two_degree_error(scene, 4)
     upd = ChiselUpdater(model, cam, src, strict)
     upd.begin_step()
-    reps = [upd.process(f) for f in frames(scene["bitten"], cam, P, tracked)]
+    reps = [upd.process(f) for f in fr]
     assert all(r.used and "tracking accuracy" in r.registration["rejected"] for r in reps)
     np.testing.assert_array_equal(upd.hand_eye, np.eye(4))  # nothing learnt from them
     # 3 mm / 3 deg: the corrections of the 2 mm / 2 deg error are applied. (The first
@@ -180,7 +182,7 @@ def test_streaming_frames_beyond_tracking_accuracy_keep_the_tracked_pose(scene: 
     # placed with its tracked pose instead of the wrong correction.)
     upd = ChiselUpdater(model, cam, src)
     upd.begin_step()
-    reps = [upd.process(f) for f in frames(scene["bitten"], cam, P, tracked)]
+    reps = [upd.process(f) for f in fr]
     applied = [r for r in reps if "rejected" not in r.registration]
     assert all(r.used for r in reps) and len(applied) >= 3
     for r in applied:
