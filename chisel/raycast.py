@@ -4,7 +4,8 @@ Used to render the CT-segmentation surface at tracked poses (preoperative model)
 current model's surface (M_t), and ground-truth meshes in the evaluation. The scene is
 built once per mesh; each render casts one ray per pixel of the raw (distorted) image.
 
-Two back ends give the same depth (float32 Embree both; tested equal to 1e-4 mm):
+Two back ends give the same depth (float32 Embree both; tested: median difference below
+1e-5 mm, 99.99th percentile below 1e-3 mm):
 
 - ``mitsuba``: Mitsuba's ray queries on a JIT variant (``llvm_ad_rgb`` on the CPU,
   ``cuda_ad_rgb`` on a GPU). drjit traces the rays of a frame as coherent packets, which

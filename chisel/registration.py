@@ -58,9 +58,9 @@ class RegistrationConfig:
     distance ambiguity of a nearly planar view and costs a bias of about this fraction of
     the true offset in well-constrained directions."""
     tracking_accuracy_mm: float = 3.0
-    """Batch mode: the tracker's accuracy (hand-eye calibration included), mm. A step whose
-    hand-eye correction F moves the camera further than this is not registered: the
-    correction explains the depth estimate's shape error, not the pose."""
+    """The tracker's accuracy (hand-eye calibration included), mm. A correction that moves
+    the camera further than this (a step's hand-eye correction F, or one frame's) is not
+    applied: it explains the depth estimate's shape error, not the pose."""
     tracking_accuracy_deg: float = 3.0
     """The same for F's rotation, degrees."""
     seed: int = 0
@@ -428,7 +428,7 @@ def _matrix_to_rotvec(R):
 
 
 @numba.njit(cache=True)
-def _solve_spd(A, b):
+def _solve_small(A, b):
     """x with A x = b by Gaussian elimination with partial pivoting; (x, ok)."""
     m = A.shape[0]
     M = A.copy()
@@ -512,7 +512,7 @@ def _icp_iterate(
             tr += A[r, r]
         for r in range(m):
             A[r, r] += 1e-9 * tr + 1e-12
-        x, ok = _solve_spd(A, b)
+        x, ok = _solve_small(A, b)
         if not ok:
             return R, c_new, sigma, it + 1, _STOPPED
         R = _rotvec_to_matrix(x[:3]) @ R
@@ -587,21 +587,20 @@ def icp_similarity(
     skip = prior and not estimate_scale and len(cfg.icp_max_dist_mm) > 1
     dists = cfg.icp_max_dist_mm[1:] if skip else cfg.icp_max_dist_mm
     grid = surface.grid
-    no_cache = np.zeros(1, dtype=np.int32)
+    # Placeholders for the numba call when the memo grid is not used (never read then).
+    no_grid = (np.zeros(3), 1.0, np.ones(3, np.int64), np.zeros(1, dtype=np.int32))
+    no_idx = np.zeros(0, dtype=np.int64)
     for dist in dists:
         k = max(cfg.tukey_k_mm, dist / 2.0)
         # The memo grid answers every lookup inside numba; a voxel met for the first time
         # (or a search beyond the memo's reach) comes back here for the k-d tree.
         use_grid = grid is not None and dist <= surface.max_dist_mm
+        origin, voxel, shape_a, cache = grid if use_grid and grid is not None else no_grid
         left = cfg.icp_max_iter
         while left > 0:
             if use_grid:
-                assert grid is not None
-                origin, voxel, shape_a, cache = grid
-                idx = np.zeros(0, dtype=np.int64)
-                budget = left
+                idx, budget = no_idx, left
             else:
-                origin, voxel, shape_a, cache = np.zeros(3), 1.0, np.ones(3, np.int64), no_cache
                 _, idx = surface.query(sigma * rel @ R.T + c_new, dist)
                 budget = 1
             R, c_new, sigma, started, outcome = _icp_iterate(

@@ -553,14 +553,11 @@ class ChiselUpdater:
             return np.full_like(E, np.nan), s, res
         # Registered estimate (camera at C @ T) re-projected into the tracked camera T.
         T_tracked_from_registered = invert_rigid(T) @ res.T_model_from_est @ T
-        if not _within_tracking_accuracy(T_tracked_from_registered, rcfg):
+        excess = _tracking_excess(T_tracked_from_registered, rcfg)
+        if excess:
             # As for a whole step (update_step): a correction the tracker cannot need is
             # the estimate's shape error; the frame keeps its tracked pose, scale only.
-            res.extra["rejected"] = (
-                "correction exceeds the tracking accuracy "
-                f"({rcfg.tracking_accuracy_mm} mm / {rcfg.tracking_accuracy_deg} deg): "
-                "tracked pose, scale only"
-            )
+            res.extra["rejected"] = f"{excess}: tracked pose, scale only"
             return (s0 * E).astype(np.float32), s0, res
         return warp_depth(s * E, self.camera, T_tracked_from_registered), s, res
 
@@ -633,7 +630,7 @@ def update_step(
         check_pose_in_model(model, f.T_world_from_cam, f"frame {f.index} pose") for f in frames
     ]
     estimates = [validate_estimate(depth_source(f), f, camera, metric) for f in frames]
-    upd = ChiselUpdater(model, camera, depth_source, cfg)
+    step_cfg = cfg
     renders: list[np.ndarray | None] = [None] * len(frames)
     scales: list[float | None] = [None] * len(frames)
     F = None
@@ -660,22 +657,18 @@ def update_step(
             C, seq_reg = _sequence_registration(*args, cfg)
             F, he = _hand_eye(*args, C, cfg, scale_free)
         seq_reg = {**seq_reg, "hand_eye": he}
-        if F is not None and not _within_tracking_accuracy(F, cfg.registration):
+        excess = None if F is None else _tracking_excess(F, cfg.registration)
+        if excess:
             # A monocular estimate whose shape differs from the model's pulls ICP to a
             # "correction" the tracker cannot need (6-12 deg on the default experiment's
             # network depth, true hand-eye error 0.5 deg); placed that way, the estimate
             # carves unchanged tissue. Trust the tracker for this step instead.
-            shift_mm, angle_deg = float(np.linalg.norm(F[:3, 3])), rotation_angle_deg(F[:3, :3])
-            reason = (
-                f"hand-eye correction {shift_mm:.2f} mm / {angle_deg:.2f} deg exceeds the "
-                f"tracking accuracy ({cfg.registration.tracking_accuracy_mm} mm / "
-                f"{cfg.registration.tracking_accuracy_deg} deg): the step is placed with "
-                "the tracked poses, scale only"
-            )
+            reason = f"hand-eye {excess}: the step is placed with the tracked poses, scale only"
             log.warning("%s", reason)
             seq_reg = {**seq_reg, "rejected": reason}
-            upd = ChiselUpdater(model, camera, depth_source, replace(cfg, register=False))
+            step_cfg = replace(cfg, register=False)
             F = None
+    upd = ChiselUpdater(model, camera, depth_source, step_cfg)
     upd.begin_step(
         hand_eye=F, fixed=F is not None, sequence_registration=seq_reg, renderer=renderer
     )
@@ -735,11 +728,14 @@ def confirm_changes(reps: list[FrameReport], camera: Camera, cfg: ChangeConfig) 
         r.mask = new
 
 
-def _within_tracking_accuracy(F: np.ndarray, rcfg: RegistrationConfig) -> bool:
-    """Whether the camera-side correction F is one the tracker can need."""
+def _tracking_excess(F: np.ndarray, rcfg: RegistrationConfig) -> str:
+    """Why the camera-side correction F is one the tracker cannot need ("" if it can)."""
+    shift_mm, angle_deg = float(np.linalg.norm(F[:3, 3])), rotation_angle_deg(F[:3, :3])
+    if shift_mm <= rcfg.tracking_accuracy_mm and angle_deg <= rcfg.tracking_accuracy_deg:
+        return ""
     return (
-        float(np.linalg.norm(F[:3, 3])) <= rcfg.tracking_accuracy_mm
-        and rotation_angle_deg(F[:3, :3]) <= rcfg.tracking_accuracy_deg
+        f"correction {shift_mm:.2f} mm / {angle_deg:.2f} deg exceeds the tracking accuracy "
+        f"({rcfg.tracking_accuracy_mm} mm / {rcfg.tracking_accuracy_deg} deg)"
     )
 
 

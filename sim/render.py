@@ -213,7 +213,6 @@ class MeshRenderer:
         Returns (N, H, W) float32 z-depth in mm, NaN on a miss.
         """
         T = check_rigid(poses, "T_world_from_cam").reshape(-1, 4, 4)
-        H, W = self.camera.shape
         if not self.jit:
             return np.stack([self._depth_via_sensor(t) for t in T])
         return self._z_depth(self._ray_length(T), len(T))
