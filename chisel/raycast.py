@@ -28,36 +28,23 @@ from chisel.geometry import Camera, check_rigid
 Backend = Literal["auto", "mitsuba", "open3d"]
 
 
-def unit_rays(rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit ray directions and their z-depth per unit length.
-
-    rays_cam : (..., 3) float, rays with z = 1 (OpenCV), as from ``Camera.rays_cam()``.
-    Returns (dirs (..., 3) float32 unit vectors, z_per_mm (...) float32 = 1 / |r|).
-    """
-    norm = np.linalg.norm(np.asarray(rays_cam, dtype=np.float64), axis=-1)
-    return (rays_cam / norm[..., None]).astype(np.float32), (1.0 / norm).astype(np.float32)
+def unit_rays(rays_cam: np.ndarray) -> np.ndarray:
+    """Unit ray directions: (..., 3) float32 from (..., 3) rays with z = 1 (OpenCV), as
+    from ``Camera.rays_cam()``. A unit ray's z component is the z-depth per mm along it."""
+    rays = np.asarray(rays_cam, dtype=np.float64)
+    return (rays / np.linalg.norm(rays, axis=-1)[..., None]).astype(np.float32)
 
 
-def z_depth_from_ray_length(t_mm: np.ndarray, z_per_mm: np.ndarray) -> np.ndarray:
-    """z-depth from the length along *unit* ray directions starting at the optical centre.
-
-    t_mm : (..., H, W) float32, distance along the unit direction ``r / |r|``, inf on a miss.
-    z_per_mm : (H, W) float32 ``1 / |r|`` from :func:`unit_rays` (the ray's z component).
-    Returns (..., H, W) float32 z-depth in mm, NaN on a miss.
-    """
-    z = np.asarray(t_mm, dtype=np.float32) * z_per_mm
-    z[~(np.isfinite(z) & (z > 0))] = np.nan
-    return z
-
-
-def jit_ray_length(mi: ModuleType, scene: object, dirs_cam: object, poses: np.ndarray) -> object:
-    """Unevaluated drjit Float: hit distance along unit camera rays, for every pose.
+def jit_z_depth(mi: ModuleType, scene: object, dirs_cam: object, poses: np.ndarray) -> object:
+    """Unevaluated drjit Float: z-depth in mm along unit camera rays, for every pose.
 
     mi : Mitsuba on a JIT variant. scene : a loaded Mitsuba scene. dirs_cam : drjit
-    Vector3f of the P unit ray directions (camera frame, OpenCV). poses : (N, 4, 4)
-    float64 ``T_world_from_cam``. Frame-major, then ray order; inf = miss. The poses are
-    gathered per ray (not baked into the kernel as literals), so every frame and batch
-    size reuses one compiled kernel and a frame's result does not depend on its batch.
+    Vector3f of the P unit ray directions (camera frame, OpenCV), from :func:`unit_rays`.
+    poses : (N, 4, 4) float64 ``T_world_from_cam``. Frame-major, then ray order; NaN = miss.
+    The hit distance ``t`` along a unit ray times the ray's z component is the z-depth,
+    computed in the kernel (no host pass). The poses are gathered per ray (not baked into
+    the kernel as literals), so every frame and batch size reuses one compiled kernel and
+    a frame's result does not depend on its batch.
     """
     import drjit as dr  # noqa: PLC0415 - only after mitsuba picked the variant
 
@@ -76,7 +63,9 @@ def jit_ray_length(mi: ModuleType, scene: object, dirs_cam: object, poses: np.nd
         R[3] * d.x + R[4] * d.y + R[5] * d.z,
         R[6] * d.x + R[7] * d.y + R[8] * d.z,
     )
-    return scene.ray_intersect_preliminary(mi.Ray3f(o_world, d_world), coherent=True).t
+    pi = scene.ray_intersect_preliminary(mi.Ray3f(o_world, d_world), coherent=True)
+    z = pi.t * d.z
+    return dr.select(pi.is_valid() & (z > 0), z, dr.nan)
 
 
 def _resolve_backend(backend: Backend) -> tuple[str, ModuleType | None]:
@@ -136,7 +125,6 @@ class MeshRaycaster:
         self._rays_key: Camera | None = None
         self._rays_cam = np.zeros((0, 3), dtype=np.float32)
         self._dirs_jit: object = None
-        self._z_per_mm = np.zeros((0,), dtype=np.float32)
 
     @classmethod
     def from_trimesh(cls, mesh, backend: Backend = "auto") -> MeshRaycaster:  # noqa: ANN001
@@ -164,9 +152,8 @@ class MeshRaycaster:
         self._set_camera(camera)
         shape = (len(poses), camera.height, camera.width)
         if self._mi is not None:
-            t = jit_ray_length(self._mi, self.scene, self._dirs_jit, poses)
-            t_np = np.array(t, dtype=np.float32).reshape(shape)
-            return z_depth_from_ray_length(t_np, self._z_per_mm)
+            z = jit_z_depth(self._mi, self.scene, self._dirs_jit, poses)
+            return np.array(z, dtype=np.float32).reshape(shape)
         dirs = self._rays_cam
         rays = np.empty((len(poses), len(dirs), 6), dtype=np.float32)
         for i, T in enumerate(poses):
@@ -178,13 +165,12 @@ class MeshRaycaster:
 
     def _set_camera(self, camera: Camera) -> None:
         """Cache the rays of ``camera``: z = 1 rays (Open3D's t_hit is then the z-depth) or
-        unit rays in drjit plus their z per mm (Mitsuba)."""
+        unit rays in drjit (Mitsuba)."""
         if self._rays_key is camera:
             return
         rays = camera.rays_cam().reshape(-1, 3)
         if self._mi is not None:
-            dirs, z_per_mm = unit_rays(rays)
-            self._z_per_mm = z_per_mm.reshape(camera.height, camera.width)
+            dirs = unit_rays(rays)
             self._dirs_jit = self._mi.Vector3f(np.ascontiguousarray(dirs.T))
         else:
             self._rays_cam = np.ascontiguousarray(rays, np.float32)

@@ -13,7 +13,7 @@ Rendering with distortion: Mitsuba renders an undistorted square-pixel pinhole i
 is remapped onto the raw (distorted) pixel grid with ``cv2.remap``: bilinear for colour,
 nearest neighbour for depth. Ground-truth depth on the JIT variants does not go through
 this remap: it is the exact ray length of :meth:`chisel.geometry.Camera.rays_cam`'s ray
-through each raw pixel centre (:func:`chisel.raycast.z_depth_from_ray_length`).
+through each raw pixel centre, computed in the kernel (:func:`chisel.raycast.jit_z_depth`).
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ import trimesh
 
 from chisel.geometry import check_rigid, make_transform
 from chisel.mitsuba_variant import load_mitsuba
-from chisel.raycast import jit_ray_length, unit_rays, z_depth_from_ray_length
+from chisel.raycast import jit_z_depth, unit_rays
 from sim.appearance import TextureVolume
 from sim.config import SimConfig
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain
@@ -95,7 +95,7 @@ class MeshRenderer:
         # Colour only matters inside the field stop: the render grid covers just those rays.
         self.grid = render_grid(self.camera, cfg.camera.max_render_upscale, used=self.field_stop)
         self._gain = vignetting_gain(cfg.camera)
-        dirs, self._z_per_mm = unit_rays(self.camera.rays_cam())
+        dirs = unit_rays(self.camera.rays_cam())
         # Unit ray directions of every raw pixel (camera frame), uploaded once; per frame
         # only the poses travel to drjit and rays are built by gathers (no recompilation).
         self._dirs_cam = (
@@ -180,6 +180,7 @@ class MeshRenderer:
                 specular=float(cfg.appearance.specular),
             )
             self._gain_used = mi.Float(self._gain.ravel()[self.field_stop.ravel()])
+            self._used_index = mi.UInt32(np.flatnonzero(self.field_stop).astype(np.uint32))
 
     def _sensor_dict(
         self, sampler: dict, pixel_format: str, grid: RenderGrid | None = None
@@ -215,19 +216,8 @@ class MeshRenderer:
         T = check_rigid(poses, "T_world_from_cam").reshape(-1, 4, 4)
         if not self.jit:
             return np.stack([self._depth_via_sensor(t) for t in T])
-        return self._z_depth(self._ray_length(T), len(T))
-
-    def _ray_length(self, T: np.ndarray) -> object:
-        """Unevaluated drjit Float: hit distance along every raw pixel's unit ray, per pose.
-
-        T : (N, 4, 4) float64 checked poses. Frame-major, then row-major pixels; inf = miss.
-        """
-        return jit_ray_length(self.mi, self.scene, self._dirs_cam, T)
-
-    def _z_depth(self, t: object, n_frames: int) -> np.ndarray:
-        H, W = self.camera.shape
-        t_np = np.array(t, dtype=np.float32).reshape(n_frames, H, W)
-        return z_depth_from_ray_length(t_np, self._z_per_mm)
+        z = jit_z_depth(self.mi, self.scene, self._dirs_cam, T)
+        return np.array(z, dtype=np.float32).reshape(len(T), *self.camera.shape)
 
     def _depth_via_sensor(self, T_world_from_cam: np.ndarray) -> np.ndarray:
         """Depth from the sensor's ``depth`` AOV (scalar_rgb has no vectorised ray queries).
@@ -320,17 +310,28 @@ class MeshRenderer:
 
         The depth rays (every raw pixel centre, exact) are scheduled with the colour rays
         of the field-stop pixels and evaluated in the same launch; the sensor model runs
-        in drjit on the used pixels (only the auto-exposure mean is a separate reduction).
+        in drjit on the used pixels (only the auto-exposure mean is a separate reduction),
+        whose 8-bit RGB is packed into one 32-bit word and scattered into the full frame
+        there too, so the host only copies the results out.
         """
         assert self._direct is not None
-        dr = self.drjit
-        t = self._ray_length(T[None])
-        dr.schedule(t)
+        dr, mi = self.drjit, self.mi
+        H, W = self.camera.shape
+        z = jit_z_depth(mi, self.scene, self._dirs_cam, T[None])
+        dr.schedule(z)
         rad = self._direct.radiance(T, seed=_frame_seed(seed, index))
         q = self._direct.sensor(rad, self._gain_used, self.cfg.imaging, _noise_key(seed, index))
-        dr.eval(t, q)
-        depth = self._z_depth(t, 1)[0]
-        H, W = self.camera.shape
-        rgb = np.zeros((H * W, 3), dtype=np.uint8)
-        rgb[self._direct.used] = np.asarray(q, dtype=np.uint32).T
-        return RenderedFrame(depth_mm=depth, valid=np.isfinite(depth), rgb=rgb.reshape(H, W, 3))
+        rgbx = dr.zeros(mi.UInt32, H * W)
+        dr.scatter(rgbx, q.x | (q.y << 8) | (q.z << 16), self._used_index)
+        dr.eval(z, rgbx)
+        depth = np.array(z, dtype=np.float32).reshape(H, W)
+        # Bytes r, g, b, 0 of each little-endian word: an (H, W, 4) view, alpha dropped.
+        rgb = (
+            np.asarray(rgbx, dtype=np.uint32)
+            .astype("<u4", copy=False)
+            .view(np.uint8)
+            .reshape(H, W, 4)
+        )
+        return RenderedFrame(
+            depth_mm=depth, valid=np.isfinite(depth), rgb=np.ascontiguousarray(rgb[..., :3])
+        )

@@ -15,7 +15,7 @@ from chisel.raycast import MeshRaycaster
 from sim.appearance import texture_volume
 from sim.config import ImagingConfig, SimConfig, replace_in
 from sim.imaging import sensor_image
-from sim.render import MeshRenderer
+from sim.render import MeshRenderer, _frame_seed, _noise_key
 from sim.spot_direct import PackedTexture, pixel_ray_frames, principled_eval
 from sim.synthetic import toy_meshes
 
@@ -209,7 +209,8 @@ def test_packed_texture_matches_mitsuba_gridvolume() -> None:
 
 
 def test_render_depth_from_the_colour_launch_is_exact() -> None:
-    """``render`` traces depth with colour in one launch: same as ``render_depth``, Open3D."""
+    """``render`` traces depth with colour in one launch: same as ``render_depth``, Open3D;
+    its RGB is the drjit sensor's, placed on the used pixels."""
     mesh = toy_meshes(1)[1]
     r = _renderer(mesh, **{"imaging.spp": 4})
     T = look_at([34.0, 1.0, 0.5], [47.0, -1.5, 0.0], [0, 0, 1])
@@ -220,6 +221,14 @@ def test_render_depth_from_the_colour_launch_is_exact() -> None:
     both = np.isfinite(ref) & np.isfinite(frame.depth_mm)
     assert both.mean() > 0.9
     assert np.median(np.abs(frame.depth_mm[both] - ref[both])) <= 0.01
+    # The 8-bit RGB packed into one word and scattered in drjit: the sensor's values of
+    # the used pixels, channel by channel, and 0 outside the field stop.
+    rad = r._direct.radiance(T, seed=_frame_seed(9, 2))
+    q = r._direct.sensor(rad, r._gain_used, r.cfg.imaging, _noise_key(9, 2))
+    expected = np.zeros(frame.rgb.shape, np.uint8)
+    expected[r.field_stop] = np.asarray(q, dtype=np.uint32).T
+    np.testing.assert_array_equal(frame.rgb, expected)
+    assert frame.rgb.flags.c_contiguous and frame.rgb[r.field_stop].mean() > 20
     again = r.render(T, index=2, seed=9)
     np.testing.assert_array_equal(again.rgb, frame.rgb)
     assert not np.array_equal(r.render(T, index=3, seed=9).rgb, frame.rgb)
