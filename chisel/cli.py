@@ -1,7 +1,10 @@
 """The ``chisel`` command: one entry point, one subcommand per task.
 
 Each stage module registers its own subcommands through a ``register(subparsers)``
-function listed in ``_COMMAND_MODULES``; this file only wires them.
+function; ``_COMMANDS`` says which module registers which command, and this file only
+wires them. Only the module of the command being run is imported (all of them for
+``--help`` or an unknown command): the modules pull in torch, Open3D or Mitsuba, whose
+imports cost seconds, and the workflow starts a ``chisel`` process per job.
 """
 
 from __future__ import annotations
@@ -13,13 +16,18 @@ import sys
 
 from chisel.errors import ChiselError
 
-_COMMAND_MODULES: list[str] = [
-    # "module.path" providing register(subparsers: argparse._SubParsersAction) -> None
-    "chisel.commands.importers",
-    "chisel.commands.depth",
-    "chisel.commands.evaluate",
-    "chisel.commands.model",
-]
+_COMMANDS: dict[str, str] = {
+    # command -> "module.path" providing register(subparsers: argparse._SubParsersAction)
+    "import": "chisel.commands.importers",
+    "depth": "chisel.commands.depth",
+    "evaluate": "chisel.commands.evaluate",
+    "report": "chisel.commands.evaluate",
+    "ct-surface": "chisel.commands.model",
+    "build": "chisel.commands.model",
+    "update": "chisel.commands.model",
+    "mesh": "chisel.commands.model",
+    "render-depth": "chisel.commands.model",
+}
 
 _DESCRIPTION = """\
 Endoscopic Chisel: build a TSDF model from a preoperative CT, detect tissue removed in
@@ -32,7 +40,19 @@ File formats: README.md "On-disk contracts" (sequence folders) and docs/updater.
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _modules_for(argv: list[str] | None) -> list[str]:
+    """The command modules to import: the one of the first command named in ``argv``, or
+    all (for None, help, a missing or an unknown command)."""
+    for token in argv or []:
+        if token in _COMMANDS:
+            return [_COMMANDS[token]]
+        if not token.startswith("-"):
+            break
+    return list(dict.fromkeys(_COMMANDS.values()))
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser for ``argv`` (default ``sys.argv[1:]``); every command when None."""
     parser = argparse.ArgumentParser(
         prog="chisel",
         description=_DESCRIPTION,
@@ -40,13 +60,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in _COMMAND_MODULES:
+    for name in _modules_for(argv):
         importlib.import_module(name).register(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,

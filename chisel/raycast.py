@@ -20,7 +20,6 @@ from types import ModuleType
 from typing import Literal
 
 import numpy as np
-import open3d as o3d
 
 from chisel.errors import InvalidInputError
 from chisel.geometry import Camera, check_rigid
@@ -120,6 +119,8 @@ class MeshRaycaster:
             params.update()
             self.scene = mi.load_dict({"type": "scene", "surface": mesh})
         else:
+            import open3d as o3d  # noqa: PLC0415 - only the fallback needs it (~1 s import)
+
             self.scene = o3d.t.geometry.RaycastingScene()
             self.scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
         self._rays_key: Camera | None = None
@@ -159,6 +160,8 @@ class MeshRaycaster:
         for i, T in enumerate(poses):
             rays[i, :, :3] = T[:3, 3]
             rays[i, :, 3:] = dirs @ T[:3, :3].T.astype(np.float32)
+        import open3d as o3d  # noqa: PLC0415 - loaded by __init__ already
+
         t = self.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)))["t_hit"].numpy()
         t[~np.isfinite(t)] = np.nan
         return t.reshape(shape)

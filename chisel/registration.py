@@ -16,16 +16,26 @@ T_model_from_est @ T_world_from_cam_tracked``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from chisel.errors import InvalidInputError
 from chisel.geometry import rotation_angle_deg, transform_points
 
-reg = o3d.pipelines.registration
+if TYPE_CHECKING:
+    import open3d as o3d
+
+
+def _o3d() -> ModuleType:
+    """Open3D, imported on first use: the updater's own ICP does not need it, only the
+    global search fallback and the Open3D ICP do, and its import costs ~1 s per process."""
+    import open3d  # noqa: PLC0415
+
+    return open3d
 
 
 @dataclass(frozen=True)
@@ -116,6 +126,7 @@ class RegistrationResult:
 
 def make_cloud(points_mm: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
     """Open3D point cloud. points_mm : (N, 3) float, mm; normals : (N, 3) unit or None."""
+    o3d = _o3d()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_mm, np.float64)))
     if normals is not None:
         pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
@@ -130,6 +141,8 @@ def correction_size(T_model_from_est: np.ndarray, center_mm: np.ndarray) -> tupl
 
 
 def _fpfh(pcd: o3d.geometry.PointCloud, voxel: float) -> o3d.pipelines.registration.Feature:
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
     return reg.compute_fpfh_feature(
         pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100)
     )
@@ -145,6 +158,7 @@ def icp_refine(
 
     ``target`` must carry normals.
     """
+    reg = _o3d().pipelines.registration
     T = np.asarray(init, dtype=np.float64)
     for dist in cfg.icp_max_dist_mm:
         kernel = reg.TukeyLoss(k=max(cfg.tukey_k_mm, dist / 2.0))
@@ -167,6 +181,7 @@ def evaluate(
     cfg: RegistrationConfig,
 ) -> tuple[float, float]:
     """(fitness, inlier RMSE mm) of ``T`` at ``cfg.fitness_dist_mm``."""
+    reg = _o3d().pipelines.registration
     ev = reg.evaluate_registration(source, target, cfg.fitness_dist_mm, T)
     return float(ev.fitness), float(ev.inlier_rmse)
 
@@ -211,6 +226,8 @@ def register_global(
     the RANSAC solution and from ``init``; the one with the higher fitness wins, so a
     RANSAC failure on a symmetric scene cannot make things worse than the tracker.
     """
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
     src = np.asarray(source_mm, np.float64)
     tgt = np.asarray(target_mm, np.float64)
     if len(src) < 10 or len(tgt) < 10:
