@@ -136,7 +136,8 @@ MIN_TRACKER_FITNESS = 0.5
 
 # ---------------------------------------------------------------------------- rendering
 class ModelRenderer:
-    """Depth renders of a model's surface (marching cubes once, then Open3D ray casting)."""
+    """Depth renders of a model's surface (marching cubes once, then ray casting with
+    :class:`~chisel.raycast.MeshRaycaster`: Mitsuba where a JIT variant works, else Open3D)."""
 
     def __init__(self, model: TsdfModel) -> None:
         self.mesh: trimesh.Trimesh = extract_mesh(model, with_color=False)
