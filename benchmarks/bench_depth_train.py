@@ -32,7 +32,19 @@ def main() -> int:
     ap.add_argument("--epochs", type=int, default=36)
     ap.add_argument("--phantoms", type=int, default=16, help="training seeds 1000..1000+N-1")
     args = ap.parse_args()
-    work = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-train-"))
+    if args.phantoms < 2:
+        ap.error("--phantoms must be >= 2: validation holds out whole phantoms")
+    if args.epochs < 1:
+        ap.error("--epochs must be >= 1")
+    if args.workdir is not None:
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        return run(args, args.workdir)
+    with tempfile.TemporaryDirectory(prefix="chisel-train-") as tmp:
+        return run(args, Path(tmp))
+
+
+def run(args: argparse.Namespace, work: Path) -> int:
+    """Render the training set into ``work``, train on it, print the figures."""
     data, ck = work / "data", work / "default.pt"
     seeds = f"1000-{1000 + args.phantoms - 1}"
     py = sys.executable

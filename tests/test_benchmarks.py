@@ -1,0 +1,116 @@
+"""The benchmark scripts run end to end on tiny inputs and keep their output contract.
+
+Each script prints ``name: value`` lines with its headline figure last; other tools and
+the issue notes read those names. Only the form is checked here, never a speed: speed
+goals are met in benchmarks/, not in timed tests.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+LINE = re.compile(r"^([a-z][a-z0-9_]*): (\S.*)$")
+
+
+def run_bench(script: str, *args: str, timeout_s: float = 300) -> list[tuple[str, str]]:
+    """Run ``benchmarks/<script>`` and return its ``(name, value)`` lines in order."""
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=timeout_s,
+    )
+    assert r.returncode == 0, f"{script} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    pairs = [m.groups() for m in map(LINE.match, r.stdout.splitlines()) if m]
+    assert pairs, f"{script} printed no name: value line:\n{r.stdout[-3000:]}"
+    return pairs
+
+
+def number(value: str) -> float:
+    x = float(value)
+    assert math.isfinite(x), value
+    return x
+
+
+def check_contract(pairs: list[tuple[str, str]], headline: str, required: list[str]) -> dict:
+    """The headline comes last and is a positive number; every required name is there."""
+    assert pairs[-1][0] == headline, f"last line is {pairs[-1]}, expected {headline}"
+    assert number(pairs[-1][1]) > 0
+    figures = dict(pairs)
+    missing = [name for name in required if name not in figures]
+    assert not missing, f"missing figures: {missing}"
+    return figures
+
+
+def test_bench_render_prints_variant_depth_fps_and_rgbd_fps_last() -> None:
+    # Fewer frames than the 100 after which memory growth is normally read: that path
+    # used to crash.
+    pairs = run_bench("bench_render.py", "--frames", "3", "--depth-frames", "8", "--batch", "4")
+    figures = check_contract(
+        pairs,
+        "rgbd_fps",
+        ["variant", "depth_fps", "rgb_render_ms", "rgb_mitsuba_direct_ms", "rss_growth_mb"],
+    )
+    assert figures["variant"] in ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
+    assert number(figures["depth_fps"]) > 0
+    assert number(figures["rgb_speedup_vs_mitsuba_direct_wall"]) > 0
+
+
+def test_bench_render_refuses_zero_frames() -> None:
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_render.py"), "--frames", "0"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert r.returncode == 2 and "--frames" in r.stderr
+
+
+def test_bench_update_prints_fusion_ratio_and_update_fps_last() -> None:
+    pairs = run_bench(
+        "bench_update.py",
+        "--width", "64", "--height", "48", "--voxel-mm", "1.0",
+        "--preop-frames", "4", "--frames", "4", "--repeats", "1",
+    )  # fmt: skip
+    figures = check_contract(
+        pairs, "update_fps", ["fusion_ratio_vs_open3d", "batch_update_fps", "peak_rss_mib"]
+    )
+    assert number(figures["fusion_ratio_vs_open3d"]) > 0
+
+
+def test_bench_phantoms_prints_phantom_s_last() -> None:
+    pairs = run_bench("bench_phantoms.py", "--seed", "0")
+    figures = check_contract(pairs, "phantom_s", ["triangles_step0", "removed_mm3"])
+    assert number(figures["triangles_step0"]) > 0 and number(figures["removed_mm3"]) > 0
+
+
+@pytest.mark.slow
+def test_bench_depth_prints_accuracy_and_infer_fps_last() -> None:
+    pairs = run_bench("bench_depth.py", "--seeds", "0", "--frames", "2")
+    figures = check_contract(pairs, "infer_fps", ["abs_rel", "delta_1_25", "infer_fps_eager"])
+    assert 0 <= number(figures["delta_1_25"]) <= 1
+
+
+@pytest.mark.slow
+def test_bench_depth_train_prints_train_min_last() -> None:
+    pairs = run_bench("bench_depth_train.py", "--phantoms", "2", "--epochs", "1")
+    figures = check_contract(pairs, "train_min", ["val_abs_rel", "best_epoch", "dataset_min"])
+    assert number(figures["val_abs_rel"]) > 0
+
+
+def test_bench_depth_train_refuses_a_single_phantom() -> None:
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_depth_train.py"), "--phantoms", "1"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert r.returncode == 2 and "validation holds out whole phantoms" in r.stderr
