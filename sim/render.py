@@ -180,7 +180,6 @@ class MeshRenderer:
                 specular=float(cfg.appearance.specular),
             )
             self._gain_used = mi.Float(self._gain.ravel()[self.field_stop.ravel()])
-            self._used_index = mi.UInt32(np.flatnonzero(self.field_stop).astype(np.uint32))
 
     def _sensor_dict(
         self, sampler: dict, pixel_format: str, grid: RenderGrid | None = None
@@ -322,7 +321,7 @@ class MeshRenderer:
         rad = self._direct.radiance(T, seed=_frame_seed(seed, index))
         q = self._direct.sensor(rad, self._gain_used, self.cfg.imaging, _noise_key(seed, index))
         rgbx = dr.zeros(mi.UInt32, H * W)
-        dr.scatter(rgbx, q.x | (q.y << 8) | (q.z << 16), self._used_index)
+        dr.scatter(rgbx, q.x | (q.y << 8) | (q.z << 16), self._direct.used_index)
         dr.eval(z, rgbx)
         depth = np.array(z, dtype=np.float32).reshape(H, W)
         # Bytes r, g, b, 0 of each little-endian word: an (H, W, 4) view, alpha dropped.

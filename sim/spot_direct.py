@@ -243,6 +243,8 @@ class SpotDirectIntegrator:
         self._vertex_normals = mi.Float(mesh_params["vertex_normals"])
         self.shape = camera.shape
         self.used = np.asarray(used, dtype=bool).ravel()
+        # Where the traced pixels go in the row-major frame (drjit scatters use it).
+        self.used_index = mi.UInt32(np.flatnonzero(self.used).astype(np.uint32))
         ray, d_du, d_dv = pixel_ray_frames(camera, used)
         self.n_pixels = len(ray)
         # Rays have z = 1, so their derivatives have z = 0: the 6 other numbers of a pixel
