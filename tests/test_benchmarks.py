@@ -19,15 +19,19 @@ ROOT = Path(__file__).resolve().parents[1]
 LINE = re.compile(r"^([a-z][a-z0-9_]*): (\S.*)$")
 
 
-def run_bench(script: str, *args: str, timeout_s: float = 300) -> list[tuple[str, str]]:
-    """Run ``benchmarks/<script>`` and return its ``(name, value)`` lines in order."""
-    r = subprocess.run(
+def run_script(script: str, *args: str, timeout_s: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / script), *args],
         capture_output=True,
         text=True,
         cwd=ROOT,
         timeout=timeout_s,
     )
+
+
+def run_bench(script: str, *args: str) -> list[tuple[str, str]]:
+    """Run ``benchmarks/<script>`` and return its ``(name, value)`` lines in order."""
+    r = run_script(script, *args)
     assert r.returncode == 0, f"{script} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     pairs = [m.groups() for m in map(LINE.match, r.stdout.splitlines()) if m]
     assert pairs, f"{script} printed no name: value line:\n{r.stdout[-3000:]}"
@@ -65,12 +69,7 @@ def test_bench_render_prints_variant_depth_fps_and_rgbd_fps_last() -> None:
 
 
 def test_bench_render_refuses_zero_frames() -> None:
-    r = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "bench_render.py"), "--frames", "0"],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-    )
+    r = run_script("bench_render.py", "--frames", "0")
     assert r.returncode == 2 and "--frames" in r.stderr
 
 
@@ -107,10 +106,5 @@ def test_bench_depth_train_prints_train_min_last() -> None:
 
 
 def test_bench_depth_train_refuses_a_single_phantom() -> None:
-    r = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "bench_depth_train.py"), "--phantoms", "1"],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-    )
+    r = run_script("bench_depth_train.py", "--phantoms", "1")
     assert r.returncode == 2 and "validation holds out whole phantoms" in r.stderr
