@@ -190,7 +190,9 @@ def build_parser() -> argparse.ArgumentParser:
             "For each seed, run `python -m phantoms generate --seed S --bites N --out "
             "DIR/phantoms/seed_S`, draw appearance from the config's randomization ranges, and "
             "render the preop sweep and per-step sequences (RGB + depth, direct lighting) into "
-            "DIR/seed_S/. Writes DIR/dataset.json listing sequence folders with their phantom seed."
+            "DIR/seed_S/. Each render's master seed is its phantom seed; a non-zero --seed "
+            "is mixed into it (another draw of paths, appearance and noise on the same "
+            "phantoms). Writes DIR/dataset.json listing sequence folders with their phantom seed."
         ),
     )
     d.add_argument("--seeds", required=True, help="phantom seeds: '100-119', '1,4,9' or '1-3,8'")

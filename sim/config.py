@@ -278,10 +278,11 @@ class ImagingConfig:
 
 @dataclass(frozen=True)
 class RandomizationConfig:
-    """Ranges sampled per sequence for training data (``sim dataset``); each a [min, max]."""
+    """Ranges sampled once per render for training data (``sim dataset``); each a [min, max]."""
 
     enabled: bool = False
-    """Sample appearance per sequence from these ranges (``render`` keeps the fixed values)."""
+    """Draw appearance, light and sensor once per render from these ranges with the master
+    seed (``sim dataset`` always does, once per phantom); off: the fixed values."""
     albedo_scale: Range = (0.8, 1.15)
     """Multiplier of the mucosa albedo."""
     hue_shift: Range = (-0.06, 0.06)

@@ -26,10 +26,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from chisel.atomic import atomic_write_text
-from sim.appearance import randomize
 from sim.config import SimConfig, config_to_dict
 from sim.errors import ConfigError, PhantomError
 from sim.pipeline import render_phantom
@@ -85,6 +85,15 @@ def generate_phantom(
     return out_dir
 
 
+def render_seed(phantom_seed: int, master_seed: int) -> int:
+    """Master seed of one phantom's render: the phantom seed itself when ``master_seed``
+    is 0 (the default), else both mixed by numpy's ``SeedSequence`` (another draw of
+    paths, appearance and noise for the same phantoms)."""
+    if master_seed == 0:
+        return int(phantom_seed)
+    return int(np.random.SeedSequence([int(master_seed), int(phantom_seed)]).generate_state(1)[0])
+
+
 def build_dataset(
     out_dir: str | Path,
     seeds: list[int],
@@ -98,7 +107,8 @@ def build_dataset(
     """Generate and render every seed; write and return ``dataset.json``'s content.
 
     ``cfg.randomization`` ranges are sampled once per phantom seed (randomisation is
-    switched on here whatever ``cfg.randomization.enabled`` says).
+    switched on here whatever ``cfg.randomization.enabled`` says), with the render seed
+    :func:`render_seed` of the phantom seed and ``cfg.seed``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -113,7 +123,7 @@ def build_dataset(
             phantom_dir = out / "phantoms" / f"seed_{seed}"
             if not (resume and (phantom_dir / "phantom.json").is_file()):
                 generate_phantom(seed, bites, phantom_dir, phantom_cmd, phantom_args)
-            seq_cfg = dataclasses.replace(randomize(cfg, seed), seed=int(seed))
+            seq_cfg = dataclasses.replace(cfg, seed=render_seed(seed, cfg.seed))
             render_phantom(phantom_dir, render_dir, seq_cfg, include_eval=False, progress=progress)
         header = json.loads(header_path.read_text())
         names = [("preop", 0, header["sequences"]["preop"])] + [

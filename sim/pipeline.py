@@ -14,6 +14,7 @@ Each sequence folder follows :mod:`chisel.sequence` (``poses.txt`` = tracked pos
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from collections.abc import Sequence as Seq
@@ -28,7 +29,7 @@ from tqdm import tqdm
 from chisel.atomic import atomic_dir
 from chisel.mitsuba_variant import choose_variant
 from chisel.sequence import Frame, SequenceWriter
-from sim.appearance import TextureVolume, texture_volume
+from sim.appearance import TextureVolume, randomize, texture_volume
 from sim.collision import TissueDistance
 from sim.config import SimConfig, config_to_dict
 from sim.paths import PathTarget, check_clearance, eval_poses, intraop_path, preop_sweep
@@ -165,8 +166,17 @@ def render_phantom(
     """Render every sequence of a phantom into ``out_dir``; returns the render.json dict.
 
     Validates the phantom, every mesh and every path before rendering anything; the
-    output folder appears only when everything succeeded.
+    output folder appears only when everything succeeded. With
+    ``cfg.randomization.enabled``, appearance, light and sensor are drawn once from the
+    ranges with ``cfg.seed``; render.json records the drawn values (randomisation off, so
+    that rendering with its config reproduces the same images).
     """
+    randomized = cfg.randomization.enabled
+    if randomized:
+        cfg = randomize(cfg, cfg.seed)
+        cfg = dataclasses.replace(
+            cfg, randomization=dataclasses.replace(cfg.randomization, enabled=False)
+        )
     phantom = load_phantom(phantom_dir)
     meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
     planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval)
@@ -187,6 +197,7 @@ def render_phantom(
         "variant": variant,
         "num_steps": phantom.num_steps,
         "depth_only": bool(cfg.depth_only),
+        "randomized": bool(randomized),
         "sequences": sequences
         if include_eval
         else {k: v for k, v in sequences.items() if k != "eval"},

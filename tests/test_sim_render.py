@@ -28,11 +28,12 @@ from sim.config import (
     load_config,
     replace_in,
 )
-from sim.dataset import build_dataset, parse_seeds
+from sim.dataset import build_dataset, parse_seeds, render_seed
 from sim.errors import ConfigError, MeshError, PhantomError
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain
 from sim.nerfstudio import cv_from_gl_pose, export_nerfstudio
 from sim.phantom import load_mesh
+from sim.pipeline import render_phantom
 from sim.render import MeshRenderer
 from sim.synthetic import write_toy_phantom
 
@@ -80,6 +81,7 @@ def test_render_folder_contract(rendered: tuple[Path, Path]) -> None:
         "eval": {"0": "eval/step_00", "1": "eval/step_01", "2": "eval/step_02"},
     }
     assert config_from_dict(header["config"]).seed == 7
+    assert header["randomized"] is False
     counts = {
         "preop": 5,
         "step_01": 6,
@@ -215,8 +217,6 @@ def test_failed_render_leaves_previous_output_intact(
     shutil.copytree(out / "eval", target / "eval")
     before = sorted(p.name for p in target.rglob("*"))
     with pytest.raises(MeshError, match="not watertight"):
-        from sim.pipeline import render_phantom
-
         render_phantom(
             broken, target, replace_in(SimConfig(), **{"camera.width": 64, "camera.height": 48})
         )
@@ -433,7 +433,25 @@ def test_dataset_runs_generator_subprocess_and_lists_sequences(tmp_path: Path) -
     ca = json.loads((tmp_path / "ds/seed_3/render.json").read_text())["config"]
     cb = json.loads((tmp_path / "ds/seed_4/render.json").read_text())["config"]
     assert ca["appearance"]["roughness"] != cb["appearance"]["roughness"]  # randomised per seed
+    # Master seed 0: each render is seeded with its phantom seed (earlier datasets stay
+    # reproducible); the drawn values are recorded with randomisation off.
+    assert ca["seed"] == 3 and ca["randomization"]["enabled"] is False
+    assert json.loads((tmp_path / "ds/seed_3/render.json").read_text())["randomized"] is True
     assert len(b) == 2
+    # Another master seed: another draw over the same phantom, reproducibly.
+    assert render_seed(3, 7) == render_seed(3, 7) not in (3, render_seed(4, 7), render_seed(3, 8))
+    build_dataset(
+        tmp_path / "ds7",
+        [3],
+        replace_in(cfg, seed=7),
+        bites=1,
+        phantom_cmd=f"{sys.executable} {gen}",
+        progress=False,
+    )
+    c7 = json.loads((tmp_path / "ds7/seed_3/render.json").read_text())["config"]
+    assert c7["seed"] == render_seed(3, 7)
+    assert c7["appearance"]["roughness"] != ca["appearance"]["roughness"]
+    assert not np.array_equal(Sequence(tmp_path / "ds7/seed_3/step_01").rgb(0), a.rgb(0))
     with pytest.raises(PhantomError, match="generator failed"):
         build_dataset(
             tmp_path / "ds2",
@@ -442,6 +460,39 @@ def test_dataset_runs_generator_subprocess_and_lists_sequences(tmp_path: Path) -
             phantom_cmd=f"{sys.executable} -c 'raise SystemExit(3)'",
             progress=False,
         )
+
+
+def test_render_draws_appearance_when_randomization_is_enabled(tmp_path: Path) -> None:
+    """`randomization.enabled` in a render config: one draw from the master seed, recorded
+    so that rendering with the recorded config gives the same bytes."""
+    phantom = write_toy_phantom(tmp_path / "phantom", n_bites=1)
+    base = replace_in(
+        SimConfig(),
+        **{
+            "camera.width": 32,
+            "camera.height": 24,
+            "imaging.spp": 1,
+            "paths.preop_frames": 2,
+            "paths.intraop_frames": 2,
+            "paths.eval_poses": 1,
+            "seed": 5,
+        },
+    )
+    on = replace_in(base, **{"randomization.enabled": True})
+    header = render_phantom(phantom, tmp_path / "on", on, progress=False)
+    drawn = randomize(on, 5)
+    recorded = config_from_dict(header["config"])
+    assert header["randomized"] is True and recorded.randomization.enabled is False
+    assert recorded.appearance == drawn.appearance and recorded.light == drawn.light
+    assert recorded.imaging == drawn.imaging and recorded.appearance != base.appearance
+    render_phantom(phantom, tmp_path / "again", recorded, progress=False)
+    render_phantom(phantom, tmp_path / "off", base, progress=False)
+    first, again = Sequence(tmp_path / "on/step_01"), Sequence(tmp_path / "again/step_01")
+    off = Sequence(tmp_path / "off/step_01")
+    for i in range(2):
+        np.testing.assert_array_equal(first.rgb(i), again.rgb(i))
+    assert not np.array_equal(first.rgb(0), off.rgb(0))
+    np.testing.assert_array_equal(first.depth_mm(0), off.depth_mm(0))  # same paths
 
 
 def test_scalar_variant_fallback_renders_depth_and_rgb(
