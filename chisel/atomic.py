@@ -43,9 +43,7 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     os.close(fd)
     tmp_path = Path(tmp)
     # mkstemp creates 0600; give the final file the permissions a plain open() would.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp_path, 0o666 & ~umask)
+    os.chmod(tmp_path, 0o666 & ~_umask())
     try:
         yield tmp_path
         with open(tmp_path, "rb+") as fh:
@@ -67,16 +65,52 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+def check_output_outside(out: str | Path, *inputs: str | Path) -> None:
+    """Raise :class:`InvalidInputError` if the output folder ``out`` overlaps an input.
+
+    An atomic folder write replaces ``out`` whole: an ``out`` equal to an input folder or
+    holding one would delete that input, and an ``out`` inside one would change it.
+    """
+    o = Path(out).resolve()
+    for inp in inputs:
+        i = Path(inp).resolve()
+        if o == i or o in i.parents:
+            raise InvalidInputError(
+                out, f"the output folder would replace the input {inp}; choose another output"
+            )
+        if i in o.parents:
+            raise InvalidInputError(
+                out, f"the output folder lies inside the input {inp}; choose one outside it"
+            )
+
+
 @contextlib.contextmanager
 def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; on success it replaces ``path``.
 
     An existing ``path`` is kept until the new folder is complete, then swapped out and
     deleted. On an exception the temporary folder is removed and ``path`` is untouched.
+    Refused (:class:`InvalidInputError`): a ``path`` that is an existing file, and one
+    that holds the current working folder (``.`` would replace everything in it).
     """
-    path = Path(path)
+    path = Path(os.path.abspath(path))
+    if path.exists() and not path.is_dir():
+        raise InvalidInputError(path, "exists and is not a folder; refusing to replace it")
+    cwd = Path.cwd().resolve()
+    if path.resolve() == cwd or path.resolve() in cwd.parents:
+        raise InvalidInputError(
+            path, "the output folder holds the current folder; replacing it would delete that"
+        )
     check_writable_parent(path)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    # mkdtemp creates 0700; give the final folder the permissions a plain mkdir() would.
+    os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
         old = None

@@ -1,0 +1,59 @@
+"""Atomic folder writes refuse outputs that would destroy inputs or the working folder."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from chisel.atomic import atomic_dir, check_output_outside
+from chisel.errors import InvalidInputError
+
+
+def test_output_may_not_replace_hold_or_sit_inside_an_input(tmp_path: Path) -> None:
+    inp = tmp_path / "phantom"
+    (inp / "meshes").mkdir(parents=True)
+    check_output_outside(tmp_path / "render", inp)  # a sibling is fine
+    with pytest.raises(InvalidInputError, match="would replace the input"):
+        check_output_outside(inp, inp)
+    with pytest.raises(InvalidInputError, match="would replace the input"):
+        check_output_outside(tmp_path, inp)  # holds the input
+    with pytest.raises(InvalidInputError, match="inside the input"):
+        check_output_outside(inp / "meshes", inp)
+    with pytest.raises(InvalidInputError, match="would replace the input"):
+        check_output_outside(
+            tmp_path / "phantom" / ".." / "phantom", inp
+        )  # same, spelled otherwise
+
+
+def test_atomic_dir_refuses_a_file_and_the_working_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = tmp_path / "afile"
+    f.write_text("keep me")
+    with pytest.raises(InvalidInputError, match="not a folder"):
+        with atomic_dir(f):
+            pass
+    assert f.read_text() == "keep me"
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "notes.txt").write_text("mine")
+    monkeypatch.chdir(work)
+    for out in (".", str(tmp_path)):
+        with pytest.raises(InvalidInputError, match="holds the current folder"):
+            with atomic_dir(out):
+                pass
+    assert (work / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "work"]  # nothing left over
+
+
+def test_atomic_dir_gives_the_usual_permissions(tmp_path: Path) -> None:
+    old = os.umask(0o022)
+    try:
+        with atomic_dir(tmp_path / "out") as tmp:
+            (tmp / "x").write_text("1")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o755
