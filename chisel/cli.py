@@ -14,7 +14,7 @@ import importlib
 import logging
 import sys
 
-from chisel.errors import ChiselError
+from chisel.errors import run_command
 
 _COMMANDS: dict[str, str] = {
     # command -> "module.path" providing register(subparsers: argparse._SubParsersAction)
@@ -75,8 +75,4 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
-    try:
-        return int(args.func(args) or 0)
-    except ChiselError as exc:
-        sys.stderr.write(f"chisel {args.command}: error: {exc}\n")
-        return 1
+    return run_command(f"chisel {args.command}", lambda: args.func(args))

@@ -7,6 +7,10 @@ errors also derive from ``ValueError`` so generic callers can catch them.
 
 from __future__ import annotations
 
+import signal
+import sys
+import threading
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -61,3 +65,37 @@ class OutputError(ChiselError, OSError):
 
     def __str__(self) -> str:  # "file: problem" like every other ChiselError, no "[Errno n]"
         return f"{self.source}: {self.problem}"
+
+
+def run_command(prog: str, command: Callable[[], int | None]) -> int:
+    """Run a CLI command; what the user can act on becomes one line on stderr, no traceback.
+
+    The project's own errors and OS errors (missing file, disk full) exit 1, an exhausted
+    memory exits 1 with a hint, Ctrl-C exits 130. SIGTERM is turned into ``SystemExit``
+    (exit 143) so that ``finally`` blocks run and atomic writers remove their temporary
+    folders instead of leaving them beside the output.
+    """
+
+    def _terminate(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    try:
+        return int(command() or 0)
+    except ChiselError as exc:
+        sys.stderr.write(f"{prog}: error: {exc}\n")
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        sys.stderr.write(f"{prog}: error: {where}{exc.strerror or exc}\n")
+    except MemoryError:
+        sys.stderr.write(
+            f"{prog}: error: out of memory (image size, frame count or voxel size too large?)\n"
+        )
+    except KeyboardInterrupt:
+        sys.stderr.write(f"{prog}: interrupted; earlier outputs are unchanged\n")
+        return 130
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    return 1

@@ -11,7 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
-from chisel.errors import ChiselError
+from chisel.errors import run_command
 from sim.config import SimConfig, load_config, replace_in
 
 _DESCRIPTION = """\
@@ -245,8 +245,4 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
-    try:
-        return int(args.func(args) or 0)
-    except ChiselError as exc:
-        sys.stderr.write(f"sim {args.command}: error: {exc}\n")
-        return 1
+    return run_command(f"sim {args.command}", lambda: args.func(args))

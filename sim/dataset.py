@@ -32,7 +32,7 @@ from tqdm import tqdm
 from chisel.atomic import atomic_write_text
 from sim.config import SimConfig, config_to_dict
 from sim.errors import ConfigError, PhantomError
-from sim.pipeline import render_phantom
+from sim.pipeline import drawn_config, render_phantom
 
 log = logging.getLogger(__name__)
 
@@ -64,19 +64,35 @@ def parse_seeds(text: str) -> list[int]:
     return sorted(seeds)
 
 
+def _split(option: str, text: str) -> list[str]:
+    try:
+        return shlex.split(text)
+    except ValueError as exc:  # e.g. an unclosed quote
+        raise ConfigError(option, f"cannot split {text!r} into arguments: {exc}") from None
+
+
 def generate_phantom(
     seed: int, bites: int, out_dir: Path, phantom_cmd: str | None = None, extra_args: str = ""
 ) -> Path:
     """Run the phantom generator CLI for one seed; raises :class:`PhantomError` on failure."""
     base = (
-        shlex.split(phantom_cmd) if phantom_cmd else [sys.executable, "-m", "phantoms", "generate"]
+        _split("--phantom-cmd", phantom_cmd)
+        if phantom_cmd
+        else [sys.executable, "-m", "phantoms", "generate"]
     )
+    if not base:
+        raise ConfigError("--phantom-cmd", "empty generator command")
     cmd = (
         base
         + ["--seed", str(seed), "--bites", str(bites), "--out", str(out_dir)]
-        + shlex.split(extra_args)
+        + _split("--phantom-args", extra_args)
     )
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+    except OSError as exc:  # the program itself is missing or not executable
+        raise PhantomError(
+            out_dir, f"cannot run the phantom generator {base[0]!r}: {exc.strerror or exc}"
+        ) from None
     if proc.returncode != 0 or not (out_dir / "phantom.json").is_file():
         tail = " | ".join((proc.stderr or proc.stdout).strip().splitlines()[-5:])
         raise PhantomError(
@@ -92,6 +108,46 @@ def render_seed(phantom_seed: int, master_seed: int) -> int:
     if master_seed == 0:
         return int(phantom_seed)
     return int(np.random.SeedSequence([int(master_seed), int(phantom_seed)]).generate_state(1)[0])
+
+
+def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _finished_render(header_path: Path, cfg: SimConfig, bites: int) -> dict[str, Any] | None:
+    """The render.json of a seed that ``--resume`` may keep, or None to render it again.
+
+    A seed is finished when its render.json reads and every sequence it lists is there; a
+    half-deleted or corrupt one is rendered again. A finished seed rendered with other
+    options than this run's is refused: resuming would mix them in one dataset.
+    """
+    try:
+        header = json.loads(header_path.read_text())
+        names = [header["sequences"]["preop"], *header["sequences"]["steps"].values()]
+        recorded, num_steps = header["config"], int(header["num_steps"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    if not all((header_path.parent / n / "sequence.json").is_file() for n in names):
+        return None
+    # Through JSON so that both sides hold lists where the config holds tuples.
+    expected = _flat(json.loads(json.dumps(config_to_dict(drawn_config(cfg)))))
+    got = _flat(recorded) if isinstance(recorded, dict) else {}
+    differ = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
+    if differ or num_steps != bites:
+        what = ", ".join(differ + ([] if num_steps == bites else ["bites"]))
+        raise ConfigError(
+            header_path,
+            f"rendered with other options ({what}) than this run; --resume would mix them: "
+            "use the same options or another --out",
+        )
+    return header
 
 
 def build_dataset(
@@ -111,6 +167,8 @@ def build_dataset(
     :func:`render_seed` of the phantom seed and ``cfg.seed``.
     """
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(out, "the dataset folder exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     cfg = dataclasses.replace(
         cfg, randomization=dataclasses.replace(cfg.randomization, enabled=True)
@@ -119,13 +177,15 @@ def build_dataset(
     for seed in tqdm(seeds, desc="dataset", unit="phantom", disable=not progress):
         render_dir = out / f"seed_{seed}"
         header_path = render_dir / "render.json"
-        if not (resume and header_path.is_file()):
+        seq_cfg = dataclasses.replace(cfg, seed=render_seed(seed, cfg.seed))
+        header = _finished_render(header_path, seq_cfg, bites) if resume else None
+        if header is None:
             phantom_dir = out / "phantoms" / f"seed_{seed}"
             if not (resume and (phantom_dir / "phantom.json").is_file()):
                 generate_phantom(seed, bites, phantom_dir, phantom_cmd, phantom_args)
-            seq_cfg = dataclasses.replace(cfg, seed=render_seed(seed, cfg.seed))
-            render_phantom(phantom_dir, render_dir, seq_cfg, include_eval=False, progress=progress)
-        header = json.loads(header_path.read_text())
+            header = render_phantom(
+                phantom_dir, render_dir, seq_cfg, include_eval=False, progress=progress
+            )
         names = [("preop", 0, header["sequences"]["preop"])] + [
             ("intraop", int(k), v)
             for k, v in sorted(header["sequences"]["steps"].items(), key=lambda kv: int(kv[0]))

@@ -26,7 +26,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from chisel.atomic import atomic_dir
+from chisel.atomic import atomic_dir, check_output_outside
 from chisel.mitsuba_variant import choose_variant
 from chisel.sequence import Frame, SequenceWriter
 from sim.appearance import TextureVolume, randomize, texture_volume
@@ -155,6 +155,18 @@ def _texture_box(mesh: trimesh.Trimesh) -> np.ndarray:
     return np.stack([b[0] - 1.0, b[1] + 1.0])
 
 
+def drawn_config(cfg: SimConfig) -> SimConfig:
+    """The configuration a render uses and records: with ``randomization.enabled``,
+    appearance, light and sensor drawn once with ``cfg.seed`` and randomisation switched
+    off (so the recorded config renders the same images again); else ``cfg`` itself."""
+    if not cfg.randomization.enabled:
+        return cfg
+    drawn = randomize(cfg, cfg.seed)
+    return dataclasses.replace(
+        drawn, randomization=dataclasses.replace(drawn.randomization, enabled=False)
+    )
+
+
 def render_phantom(
     phantom_dir: str | Path,
     out_dir: str | Path,
@@ -172,12 +184,9 @@ def render_phantom(
     that rendering with its config reproduces the same images).
     """
     randomized = cfg.randomization.enabled
-    if randomized:
-        cfg = randomize(cfg, cfg.seed)
-        cfg = dataclasses.replace(
-            cfg, randomization=dataclasses.replace(cfg.randomization, enabled=False)
-        )
+    cfg = drawn_config(cfg)
     phantom = load_phantom(phantom_dir)
+    check_output_outside(out_dir, phantom.path, *{Path(s.mesh_path).parent for s in phantom.steps})
     meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
     planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval)
     variant = choose_variant(cfg.variant)
