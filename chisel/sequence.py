@@ -30,7 +30,13 @@ import cv2
 import numpy as np
 
 from chisel.atomic import atomic_dir
-from chisel.errors import DepthUnitsError, FormatVersionError, InvalidInputError, PoseError
+from chisel.errors import (
+    CameraError,
+    DepthUnitsError,
+    FormatVersionError,
+    InvalidInputError,
+    PoseError,
+)
 from chisel.geometry import Camera, check_rigid
 
 SEQUENCE_FORMAT = "endoscopic-chisel/sequence"
@@ -109,6 +115,8 @@ def _poses_to_text(poses: np.ndarray) -> str:
 
 def read_poses_txt(path: Path) -> np.ndarray:
     """Read N x 16 row-major ``T_world_from_cam`` lines; returns (N, 4, 4) float64."""
+    if not path.is_file():
+        raise PoseError(path, "file is missing")
     try:
         arr = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as exc:
@@ -258,6 +266,74 @@ def write_sequence(
     return Path(path)
 
 
+def _json_type(value: object) -> str:
+    """JSON's name for ``value``'s type, for error messages about a hand-edited header."""
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, int | float):
+        return "a number"
+    return {dict: "an object", list: "an array", str: "a string"}.get(type(value), "null")
+
+
+def _is_int(value: object) -> bool:
+    # bool is an int subclass: ``true`` is not a frame count or a pixel size.
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _read_header(path: Path) -> dict[str, Any]:
+    """``sequence.json`` as a dict; anything unreadable raises :class:`InvalidInputError`."""
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise InvalidInputError(path, f"cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise InvalidInputError(
+            path, f"not UTF-8 text (byte {exc.start}): is this really a sequence.json?"
+        ) from None
+    try:
+        header = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InvalidInputError(path, f"invalid JSON: {exc}") from None
+    if not isinstance(header, dict):
+        raise InvalidInputError(path, f"expected a JSON object, got {_json_type(header)}")
+    return header
+
+
+def _header_flag(header: dict[str, Any], key: str, source: Path) -> bool:
+    """A ``has_*`` / ``undistorted`` flag; absent means False (as written by older tools)."""
+    value = header.get(key, False)
+    # bool("false") is True: a quoted flag would silently switch a part on.
+    if not isinstance(value, bool):
+        raise InvalidInputError(source, f"{key} must be true or false, got {value!r}")
+    return value
+
+
+def _header_camera(value: object, source: Path) -> Camera:
+    """The header's ``camera`` object as a :class:`Camera` that fits its own image size."""
+    if not isinstance(value, dict):
+        raise CameraError(
+            source, f"camera must be an object {{width, height, K, dist}}, got {_json_type(value)}"
+        )
+    for key in ("width", "height"):
+        if key in value and not _is_int(value[key]):
+            raise CameraError(source, f"camera {key} must be an integer, got {value[key]!r}")
+    try:
+        camera = Camera.from_dict(value, str(source))
+    except CameraError:
+        raise
+    except (TypeError, ValueError) as exc:  # K or dist that are not arrays of numbers
+        raise CameraError(source, f"camera K (3x3) and dist (5) must be numbers: {exc}") from None
+    # Pixel centres sit at integer coordinates, so the image spans [-0.5, W - 0.5]; a
+    # principal point beyond that means K was made for another image size.
+    if not (-0.5 <= camera.cx <= camera.width - 0.5 and -0.5 <= camera.cy <= camera.height - 0.5):
+        raise CameraError(
+            source,
+            f"principal point ({camera.cx:g}, {camera.cy:g}) lies outside the "
+            f"{camera.width}x{camera.height} image: the intrinsics do not match the image size",
+        )
+    return camera
+
+
 class Sequence:
     """A sequence folder opened for reading; frames are loaded lazily.
 
@@ -269,10 +345,7 @@ class Sequence:
         header_path = self.path / "sequence.json"
         if not header_path.is_file():
             raise InvalidInputError(self.path, "not a sequence folder: sequence.json is missing")
-        try:
-            header = json.loads(header_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise InvalidInputError(header_path, f"invalid JSON: {exc}") from None
+        header = _read_header(header_path)
         if header.get("format") != SEQUENCE_FORMAT:
             raise FormatVersionError(
                 header_path, f"format is {header.get('format')!r}, expected {SEQUENCE_FORMAT!r}"
@@ -282,11 +355,25 @@ class Sequence:
                 header_path,
                 f"sequence version {header.get('version')!r}; this reader reads version {SEQUENCE_VERSION}",
             )
+        for key in ("camera", "num_frames"):
+            if key not in header:
+                raise InvalidInputError(header_path, f"required field {key!r} is missing")
+        meta = header.get("meta", {})
+        if not isinstance(meta, dict):
+            raise InvalidInputError(header_path, f"meta must be an object, got {_json_type(meta)}")
+        num_frames = header["num_frames"]
+        if not _is_int(num_frames) or num_frames < 1:
+            raise InvalidInputError(
+                header_path, f"num_frames must be a positive integer, got {num_frames!r}"
+            )
         self.header: dict[str, Any] = header
-        self.meta: dict[str, Any] = header.get("meta", {})
-        self.camera = Camera.from_dict(header["camera"], str(header_path))
-        self.num_frames = int(header["num_frames"])
-        self.undistorted = bool(header.get("undistorted", False))
+        self.meta: dict[str, Any] = meta
+        self.camera = _header_camera(header["camera"], header_path)
+        self.num_frames: int = num_frames
+        self.undistorted = _header_flag(header, "undistorted", header_path)
+        self.has_rgb = _header_flag(header, "has_rgb", header_path)
+        self.has_depth = _header_flag(header, "has_depth", header_path)
+        self.has_mask = _header_flag(header, "has_mask", header_path)
         self.poses = read_poses_txt(self.path / "poses.txt")
         if len(self.poses) != self.num_frames:
             raise PoseError(
@@ -294,18 +381,17 @@ class Sequence:
                 f"{len(self.poses)} poses but sequence.json declares {self.num_frames} frames",
             )
         self.true_poses: np.ndarray | None = None
-        if header.get("has_true_poses"):
-            self.true_poses = read_poses_txt(self.path / "poses_true.txt")
+        if _header_flag(header, "has_true_poses", header_path):
+            true_path = self.path / "poses_true.txt"
+            if not true_path.is_file():
+                raise PoseError(true_path, "file is missing but sequence.json sets has_true_poses")
+            self.true_poses = read_poses_txt(true_path)
             if len(self.true_poses) != self.num_frames:
                 raise PoseError(
-                    self.path / "poses_true.txt",
-                    f"{len(self.true_poses)} poses for {self.num_frames} frames",
+                    true_path, f"{len(self.true_poses)} poses for {self.num_frames} frames"
                 )
-        self.has_rgb = bool(header.get("has_rgb"))
-        self.has_depth = bool(header.get("has_depth"))
-        self.has_mask = bool(header.get("has_mask"))
         self.camera_mask: np.ndarray | None = None
-        if header.get("has_camera_mask"):
+        if _header_flag(header, "has_camera_mask", header_path):
             self.camera_mask = self._read_png(self.path / "camera_mask.png", gray=True) > 127
 
     def __len__(self) -> int:
@@ -335,12 +421,17 @@ class Sequence:
             raise InvalidInputError(path, "file is missing")
         try:
             arr = np.load(path, allow_pickle=False)
-        except ValueError as exc:
+        except (ValueError, EOFError, OSError) as exc:  # EOFError: an empty file
             raise InvalidInputError(
                 path, f"cannot read depth (.npy without pickle): {exc}"
             ) from None
+        if not isinstance(arr, np.ndarray):  # np.load opens an .npz archive as well
+            arr.close()
+            raise InvalidInputError(path, "depth must be a single .npy array, not an .npz archive")
         if arr.dtype.kind != "f":
             raise InvalidInputError(path, f"depth must be float32 mm, got dtype {arr.dtype}")
+        if arr.ndim != 2:
+            raise InvalidInputError(path, f"depth must be a 2-D (H, W) map, got shape {arr.shape}")
         self.camera.check_image(arr, str(path))
         return depth_from_disk(arr)
 

@@ -14,13 +14,14 @@ Conventions converted here (nerfstudio docs, "Data conventions"):
 Layout::
 
     DIR/transforms.json   camera_model OPENCV, fl_x, fl_y, cx, cy, w, h, k1, k2, k3, p1, p2, frames
-    DIR/images/000000.png RGB (copied)
-    DIR/depth/000000.npy  float32 z-depth, mm, 0 = invalid (copied)
+    DIR/images/000000.png RGB (copied once it decodes to the camera's size)
+    DIR/depth/000000.npy  float32 z-depth, mm, 0 = invalid (copied once it loads at that size)
     DIR/masks/000000.png  255 = use the pixel (field stop AND valid depth), 0 = ignore
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import shutil
 from pathlib import Path
@@ -29,8 +30,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from chisel.atomic import atomic_dir
-from chisel.errors import InvalidInputError
+from chisel.atomic import atomic_dir, check_output_outside
+from chisel.errors import InvalidInputError, OutputError
 from chisel.sequence import Sequence
 
 T_CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -58,9 +59,14 @@ def export_nerfstudio(
     """Write ``out_dir`` (atomically) from a sequence folder; returns its transforms.json path.
 
     ``use_true_poses`` exports ``poses_true.txt`` instead of the tracked ``poses.txt``.
+    Raises :class:`InvalidInputError` for a malformed sequence (a frame that is missing,
+    does not decode or is not the camera's size) or an ``out_dir`` that is, holds or lies
+    inside the sequence folder; ``out_dir`` is then left as it was.
     """
     if units not in UNIT_SCALE:
         raise InvalidInputError("units", f"expected 'm' or 'mm', got {units!r}")
+    # The atomic write replaces out_dir whole: refuse before it could delete the input.
+    check_output_outside(out_dir, sequence_dir)
     seq = Sequence(sequence_dir)
     if not seq.has_rgb:
         raise InvalidInputError(seq.path, "sequence has no RGB images; nerfstudio needs images")
@@ -80,17 +86,24 @@ def export_nerfstudio(
         frames = []
         for i in range(len(seq)):
             name = f"{i:06d}"
+            # Decode before copying the bytes: the accessors refuse a missing, corrupt or
+            # wrongly sized frame, which nerfstudio would only discover mid-training.
+            seq.rgb(i)
             shutil.copyfile(seq.path / "rgb" / f"{name}.png", tmp / "images" / f"{name}.png")
             T = gl_from_cv_pose(poses[i])
             T[:3, 3] *= scale
             frame = {"file_path": f"images/{name}.png", "transform_matrix": T.tolist()}
             mask = seq.mask(i)
             if mask is not None:
-                cv2.imwrite(
+                if not cv2.imwrite(
                     str(tmp / "masks" / f"{name}.png"), np.where(mask, 255, 0).astype(np.uint8)
-                )
+                ):  # OpenCV returns False instead of raising (disk full, unwritable folder)
+                    raise OutputError(
+                        out / "masks" / f"{name}.png", OSError(errno.EIO, "disk full?")
+                    )
                 frame["mask_path"] = f"masks/{name}.png"
             if seq.has_depth:
+                seq.depth_mm(i)
                 shutil.copyfile(seq.path / "depth" / f"{name}.npy", tmp / "depth" / f"{name}.npy")
                 frame["depth_file_path"] = f"depth/{name}.npy"
             frames.append(frame)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from chisel.atomic import check_output_outside
 from chisel.errors import InvalidInputError
 from chisel.sequence import Frame, Sequence, SequenceWriter
 from sim.config import TrackingConfig
@@ -20,8 +21,11 @@ def retrack_sequence(
 ) -> Path:
     """Write ``out_path`` (atomically): ``sequence_path`` with new tracked poses.
 
-    Raises :class:`InvalidInputError` when the input has no true poses (real data).
+    Raises :class:`InvalidInputError` when the input has no true poses (real data), is
+    malformed, or when ``out_path`` is, holds or lies inside ``sequence_path``.
     """
+    # The atomic write replaces out_path whole: refuse before it could delete the input.
+    check_output_outside(out_path, sequence_path)
     seq = Sequence(sequence_path)
     if seq.true_poses is None:
         raise InvalidInputError(
