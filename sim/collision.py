@@ -18,6 +18,11 @@ class TissueDistance:
     """
 
     def __init__(self, mesh: trimesh.Trimesh) -> None:
+        self.bounds = np.asarray(mesh.bounds, dtype=np.float64)
+        """(2, 3) axis-aligned bounding box of the mesh, mm."""
+        # sim.phantom.load_mesh records the file, so that path errors can name it.
+        self.source = str(mesh.metadata.get("file_path", "the tissue mesh"))
+        """The mesh file (or a description), for error messages."""
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(
             o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),

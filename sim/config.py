@@ -9,7 +9,11 @@ typo never passes silently. ``config/sim_default.yaml`` lists every key with its
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import numbers
+import types
+import typing
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -21,6 +25,125 @@ from chisel.geometry import Camera
 from sim.errors import ConfigError
 
 Range = tuple[float, float]
+
+MAX_IMAGE_SIDE = 8192
+"""Largest image width/height in pixels: beyond it the per-pixel ray arrays exhaust memory."""
+MAX_FRAMES = 100_000
+"""Largest number of frames (or evaluation poses) of one sequence."""
+
+
+def _show(value: Any) -> str:
+    """A short, YAML-flavoured description of a value for error messages."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f"{value!r} (a string)"
+    text = repr(value.tolist() if isinstance(value, np.ndarray) else value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _check_value(value: Any, tp: Any, key: str) -> Any:
+    """``value`` checked against the field annotation ``tp``; returns it normalised.
+
+    Normalisation only makes equal values uniform (lists -> tuples, numpy scalars ->
+    Python numbers); it never converts between kinds: YAML ``2.5`` for an integer field,
+    ``"85"`` for a number or ``"no"`` for a boolean are errors, not guesses.
+    """
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        options = [a for a in args if a is not type(None)]
+        if value is None and len(options) < len(args):
+            return None
+        # Only ``X | None`` is used in the configuration dataclasses.
+        return _check_value(value, options[0], key)
+    if origin is Literal:
+        _check(
+            isinstance(value, str) and value in args,
+            key,
+            f"expected one of {', '.join(map(str, args))}, got {_show(value)}",
+        )
+        return value
+    if origin is tuple:
+        variadic = len(args) == 2 and args[1] is Ellipsis
+        noun = "numbers" if all(a is float for a in args if a is not Ellipsis) else "values"
+        what = f"a list of {noun}" if variadic else f"a list of {len(args)} {noun}"
+        _check(
+            isinstance(value, list | tuple | np.ndarray) and not isinstance(value, str),
+            key,
+            f"expected {what}, got {_show(value)}",
+        )
+        items = list(value)
+        _check(
+            variadic or len(items) == len(args),
+            key,
+            f"expected {what}, got {len(items)}: {_show(items)}",
+        )
+        elem_types = [args[0]] * len(items) if variadic else list(args)
+        return tuple(
+            _check_value(v, t, f"{key}[{i}]")
+            for i, (v, t) in enumerate(zip(items, elem_types, strict=True))
+        )
+    if tp is bool:
+        # Not ``bool(value)``: the string "no" would be true.
+        _check(
+            isinstance(value, bool | np.bool_), key, f"expected true or false, got {_show(value)}"
+        )
+        return bool(value)
+    if tp is int:
+        _check(
+            isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_),
+            key,
+            f"expected an integer, got {_show(value)}",
+        )
+        return int(value)
+    if tp is float:
+        _check(
+            isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_),
+            key,
+            f"expected a number, got {_show(value)}",
+        )
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an integer too large for a float
+            finite = False
+        _check(finite, key, f"expected a finite number, got {_show(value)}")
+        # Keep Python ints as given (render.json records the configuration as written).
+        return value if type(value) in (int, float) else float(value)
+    if isinstance(tp, type) and is_dataclass(tp):
+        _check(
+            isinstance(value, tp),
+            key,
+            f"expected a mapping of {tp.__name__} keys, got {_show(value)}",
+        )
+        return value
+    if tp is str:
+        _check(isinstance(value, str), key, f"expected a string, got {_show(value)}")
+        return value
+    raise TypeError(f"{key}: unsupported field type {tp!r}")  # a programming error
+
+
+@functools.cache
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _check_fields(obj: Any, section: str) -> None:
+    """Check every field of the frozen dataclass ``obj`` against its annotation.
+
+    Runs first in each ``__post_init__``, so YAML files, ``replace_in`` overrides and
+    direct construction are all checked the same way; the error names the dotted key
+    (``section.field``).
+    """
+    hints = _field_types(type(obj))
+    for f in fields(obj):
+        key = f"{section}.{f.name}" if section else f.name
+        value = getattr(obj, f.name)
+        checked = _check_value(value, hints[f.name], key)
+        if checked is not value:
+            object.__setattr__(obj, f.name, checked)
 
 
 def _check(cond: bool, name: str, problem: str) -> None:
@@ -65,18 +188,20 @@ class CameraConfig:
     """Refuse distortions whose undistorted render grid exceeds this many times the pixels."""
 
     def __post_init__(self) -> None:
+        _check_fields(self, "camera")
         _check(
-            int(self.width) >= 8 and int(self.height) >= 8,
+            self.width >= 8 and self.height >= 8,
             "camera.width/height",
             f"image must be at least 8x8 pixels, got {self.width}x{self.height}",
         )
+        for name in ("width", "height"):
+            _check(
+                getattr(self, name) <= MAX_IMAGE_SIDE,
+                f"camera.{name}",
+                f"must be at most {MAX_IMAGE_SIDE} pixels, got {getattr(self, name)}",
+            )
         _check(
             1.0 < self.fov_deg < 170.0, "camera.fov_deg", f"must be in (1, 170), got {self.fov_deg}"
-        )
-        _check(
-            len(self.dist) == 5,
-            "camera.dist",
-            f"expected 5 OpenCV coefficients, got {list(self.dist)}",
         )
         _check(
             0.05 <= self.field_stop_radius_frac <= 2.0,
@@ -146,11 +271,7 @@ class LightConfig:
     """Half-angle of the spot's full-intensity core, degrees (smooth falloff beyond)."""
 
     def __post_init__(self) -> None:
-        _check(
-            len(self.offset_mm) == 3,
-            "light.offset_mm",
-            f"expected 3 numbers, got {list(self.offset_mm)}",
-        )
+        _check_fields(self, "light")
         _check(
             float(np.linalg.norm(self.offset_mm)) < 2.0,
             "light.offset_mm",
@@ -192,6 +313,7 @@ class AppearanceConfig:
     """Cap on the texture volume's voxel count (memory: 12 bytes per voxel)."""
 
     def __post_init__(self) -> None:
+        _check_fields(self, "appearance")
         for name in ("albedo_rgb", "vessel_rgb"):
             v = getattr(self, name)
             _check(
@@ -263,6 +385,7 @@ class ImagingConfig:
     """Auto-exposure target: mean linear signal inside the field stop."""
 
     def __post_init__(self) -> None:
+        _check_fields(self, "imaging")
         _check(1 <= self.spp <= 4096, "imaging.spp", f"must be in [1, 4096], got {self.spp}")
         _check(self.exposure > 0, "imaging.exposure", f"must be > 0, got {self.exposure}")
         _check(
@@ -303,6 +426,7 @@ class RandomizationConfig:
     """Read-noise std."""
 
     def __post_init__(self) -> None:
+        _check_fields(self, "randomization")
         bounds = {
             "albedo_scale": (0.1, 3.0),
             "hue_shift": (-0.5, 0.5),
@@ -334,15 +458,12 @@ class TrackingConfig:
     """Tracking latency: frame i reports the true pose of frame max(i - latency, 0)."""
 
     def __post_init__(self) -> None:
+        _check_fields(self, "tracking")
         for name in ("jitter_mm", "jitter_deg", "handeye_mm", "handeye_deg"):
             v = getattr(self, name)
-            _check(
-                math.isfinite(v) and v >= 0,
-                f"tracking.{name}",
-                f"must be a finite number >= 0, got {v}",
-            )
+            _check(v >= 0, f"tracking.{name}", f"must be a finite number >= 0, got {v}")
         _check(
-            int(self.latency_frames) >= 0,
+            self.latency_frames >= 0,
             "tracking.latency_frames",
             f"must be >= 0, got {self.latency_frames}",
         )
@@ -380,16 +501,23 @@ class PathConfig:
     """Attempts at drawing a collision-free intraoperative path before giving up."""
 
     def __post_init__(self) -> None:
+        _check_fields(self, "paths")
         _check(
             self.clearance_mm > 0, "paths.clearance_mm", f"must be > 0 mm, got {self.clearance_mm}"
         )
         for name in ("preop_frames", "intraop_frames", "eval_poses", "keyframes", "max_tries"):
             _check(
-                int(getattr(self, name)) >= 1,
+                getattr(self, name) >= 1,
                 f"paths.{name}",
                 f"must be >= 1, got {getattr(self, name)}",
             )
-        _check(int(self.keyframes) >= 2, "paths.keyframes", f"must be >= 2, got {self.keyframes}")
+        for name in ("preop_frames", "intraop_frames", "eval_poses"):
+            _check(
+                getattr(self, name) <= MAX_FRAMES,
+                f"paths.{name}",
+                f"must be at most {MAX_FRAMES}, got {getattr(self, name)}",
+            )
+        _check(self.keyframes >= 2, "paths.keyframes", f"must be >= 2, got {self.keyframes}")
         _check(self.lookahead_mm > 0, "paths.lookahead_mm", f"must be > 0, got {self.lookahead_mm}")
         _check(
             0.0 <= self.turn_fraction <= 1.0,
@@ -438,16 +566,8 @@ class SimConfig:
     """Mitsuba variant; ``auto`` probes cuda, then llvm, then falls back to scalar (warned)."""
 
     def __post_init__(self) -> None:
-        _check(
-            isinstance(self.seed, int) and self.seed >= 0,
-            "seed",
-            f"must be an integer >= 0, got {self.seed!r}",
-        )
-        _check(
-            self.variant in ("auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"),
-            "variant",
-            f"expected auto, cuda_ad_rgb, llvm_ad_rgb or scalar_rgb, got {self.variant!r}",
-        )
+        _check_fields(self, "")  # also checks ``variant`` against its Literal
+        _check(self.seed >= 0, "seed", f"must be an integer >= 0, got {self.seed!r}")
 
 
 def _to_plain(value: Any) -> Any:
@@ -471,9 +591,9 @@ def _tupleize(value: Any) -> Any:
 
 def _build(cls: type, data: Any, where: str) -> Any:
     if not isinstance(data, dict):
-        raise ConfigError(where, f"expected a mapping, got {type(data).__name__}")
+        raise ConfigError(where, f"expected a mapping, got {_show(data)}")
     known = {f.name: f for f in fields(cls)}
-    unknown = sorted(set(data) - set(known))
+    unknown = sorted(str(k) for k in set(data) - set(known))  # YAML keys may be numbers
     if unknown:
         raise ConfigError(where, f"unknown key(s) {unknown}; known keys: {sorted(known)}")
     kwargs: dict[str, Any] = {}
@@ -498,7 +618,12 @@ def _build(cls: type, data: Any, where: str) -> Any:
 
 def config_from_dict(data: dict[str, Any]) -> SimConfig:
     """Build a :class:`SimConfig` from a nested mapping; unknown keys raise ConfigError."""
-    return _build(SimConfig, data, "")
+    try:
+        return _build(SimConfig, data, "")
+    except ConfigError as exc:
+        if exc.source:
+            raise
+        raise ConfigError("config", exc.problem) from None  # top level: no key to name
 
 
 def load_config(path: str | Path | None) -> SimConfig:
@@ -509,13 +634,27 @@ def load_config(path: str | Path | None) -> SimConfig:
     if not p.is_file():
         raise ConfigError(p, "configuration file does not exist")
     try:
-        data = yaml.safe_load(p.read_text()) or {}
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(p, "not a text file (invalid UTF-8)") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(p, f"invalid YAML: {exc}") from None
+        # PyYAML's message spans several lines; the CLI prints one.
+        raise ConfigError(p, f"invalid YAML: {' '.join(str(exc).split())}") from None
+    except OSError as exc:
+        raise ConfigError(p, f"cannot read: {exc.strerror or exc}") from None
+    if data is None:  # an empty file (or only comments): all defaults
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(p, f"expected a mapping of configuration sections, got {_show(data)}")
     try:
-        return config_from_dict(data)
+        return _build(SimConfig, data, "")
     except ConfigError as exc:
-        raise ConfigError(f"{p}: {exc.source}", exc.problem) from None
+        # Name the file and the dotted key: "cfg.yaml: paths.preop_frames: ...".
+        raise ConfigError(f"{p}: {exc.source}" if exc.source else p, exc.problem) from None
+
+
+def _field_names(obj: Any) -> set[str]:
+    return {f.name for f in fields(obj)}
 
 
 def replace_in(cfg: SimConfig, **changes: Any) -> SimConfig:
@@ -524,11 +663,13 @@ def replace_in(cfg: SimConfig, **changes: Any) -> SimConfig:
         if value is None:
             continue
         parts = key.split(".")
-        if len(parts) == 1:
+        section = getattr(cfg, parts[0], None)
+        if len(parts) == 1 and parts[0] in _field_names(cfg):
             cfg = dataclasses.replace(cfg, **{key: value})
-        else:
-            section = getattr(cfg, parts[0])
+        elif len(parts) == 2 and is_dataclass(section) and parts[1] in _field_names(section):
             cfg = dataclasses.replace(
                 cfg, **{parts[0]: dataclasses.replace(section, **{parts[1]: value})}
             )
+        else:
+            raise ConfigError(key, "unknown configuration key")
     return cfg

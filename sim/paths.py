@@ -24,9 +24,13 @@ from scipy.ndimage import gaussian_filter1d
 from chisel.geometry import look_at, make_transform
 from sim.collision import TissueDistance
 from sim.config import PathConfig
-from sim.errors import PathError, PathInTissueError
+from sim.errors import PathError, PathInTissueError, PhantomError
 
 _KIND_SEED = {"intraop": 1, "eval": 2}
+
+TARGET_DEPTH_TOL_MM = 1.0
+"""How deep inside tissue the target centre may lie (it is on the surface; the mesh is a
+triangulation of it). Deeper, no viewpoint has a line of sight to it."""
 
 
 @dataclass(frozen=True)
@@ -41,6 +45,8 @@ class PathTarget:
     """(2, 3) float64 change-region box [[min], [max]], mm."""
     approach_mm: np.ndarray
     """(3,) float64 a point in the air in front of the target (end of the airway path), mm."""
+    source: str = "phantom.json"
+    """The manifest these come from, named in error messages."""
 
 
 def _normalize(v: np.ndarray) -> np.ndarray:
@@ -109,6 +115,55 @@ def _orient(
     return poses
 
 
+def check_mesh_frame(points_mm: np.ndarray, what: str, tissue: TissueDistance, source: str) -> None:
+    """Raise :class:`PhantomError` if a point lies far outside the tissue mesh's bounding box.
+
+    ``phantom.json`` and its meshes share one world frame in mm. A mesh in metres (1000x
+    too small) or in another frame would otherwise give collision-free paths that look at
+    nothing and renders without valid depth, with exit status 0. The tolerance (2 mm +
+    a quarter of the box diagonal) leaves room for a nostril just outside the box.
+    """
+    pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
+    box = tissue.bounds
+    outside = np.linalg.norm(np.maximum(box[0] - pts, 0) + np.maximum(pts - box[1], 0), axis=1)
+    i = int(np.argmax(outside))
+    if outside[i] > 2.0 + 0.25 * float(np.linalg.norm(box[1] - box[0])):
+        raise PhantomError(
+            source,
+            f"{what} {np.round(pts[i], 2).tolist()} mm lies {outside[i]:.1f} mm outside the "
+            f"bounding box {np.round(box, 3).tolist()} mm of the tissue mesh {tissue.source}: "
+            f"the mesh is probably in other units (mm expected) or another frame than the "
+            f"phantom manifest",
+        )
+
+
+def _check_target(target: PathTarget, tissue: TissueDistance) -> None:
+    """Refuse a target (or approach point) no viewpoint can work with, naming the manifest."""
+    check_mesh_frame(target.center_mm, "target.center_mm", tissue, target.source)
+    check_mesh_frame(target.approach_mm, "airway_path_mm[-1]", tissue, target.source)
+    d = float(tissue.signed_distance(target.center_mm[None])[0])
+    if d < -TARGET_DEPTH_TOL_MM:
+        raise PathError(
+            target.source,
+            f"target.center_mm {np.round(target.center_mm, 2).tolist()} mm lies {-d:.2f} mm "
+            f"inside the tissue of {tissue.source}: it must be on the tissue surface, where "
+            f"a camera in the airway can see it",
+        )
+
+
+def _why_unseen(target: PathTarget, tissue: TissueDistance) -> str:
+    """A hint for "no viewpoint found": is the target hidden from the airway's end?"""
+    dist = float(np.linalg.norm(target.center_mm - target.approach_mm))
+    hit = float(tissue.first_hit_mm(target.approach_mm[None], target.center_mm[None])[0])
+    if dist > 0 and hit < dist - 1.5:  # the same margin as the line-of-sight test
+        return (
+            f"; tissue hides target.center_mm of {target.source} from the end of the airway "
+            f"path ({dist - hit:.1f} mm before it): the target must be on the tissue surface "
+            f"facing the airway"
+        )
+    return ""
+
+
 def check_clearance(
     positions_mm: np.ndarray, tissue: TissueDistance, clearance_mm: float, source: str
 ) -> np.ndarray:
@@ -149,25 +204,43 @@ def preop_sweep(
     tissue: TissueDistance,
     n_frames: int,
     cfg: PathConfig,
+    source: str = "phantom.json",
 ) -> np.ndarray:
     """The preoperative scoping sweep: nostril to the target along the airway.
 
-    airway_path_mm : (M, 3) polyline, mm. target_center_mm : (3,) mm.
+    airway_path_mm : (M, 3) polyline, mm. target_center_mm : (3,) mm. source : the
+    manifest they come from (named in errors).
     Returns (n_frames, 4, 4) ``T_world_from_cam``. The polyline is smoothed (Gaussian,
     sigma 1.5 mm) and pushed away from tissue where it comes closer than the clearance.
-    Raises :class:`PathInTissueError` if the polyline starts or runs inside tissue.
+    Raises :class:`PathInTissueError` if the polyline starts or runs inside tissue,
+    :class:`PathError` if the clearance cannot be kept, :class:`PhantomError` if the
+    points lie far outside the mesh (units or frame mismatch).
     """
     airway = np.asarray(airway_path_mm, dtype=np.float64)
+    check_mesh_frame(target_center_mm, "target.center_mm", tissue, source)
+    check_mesh_frame(airway, "airway_path_mm", tissue, source)
     check_inside = tissue.signed_distance(airway)
     if check_inside[0] < 0:
         raise PathInTissueError(
-            "airway_path_mm",
-            f"the airway path starts inside tissue at {np.round(airway[0], 2).tolist()} mm "
-            f"(signed distance {check_inside[0]:.2f} mm)",
+            source,
+            f"airway_path_mm: the airway path starts inside tissue at "
+            f"{np.round(airway[0], 2).tolist()} mm (signed distance {check_inside[0]:.2f} mm "
+            f"from {tissue.source})",
         )
     step = cfg.clearance_mm / 4.0
     dense = _densify(airway, step)
-    check_clearance(dense[:1], tissue, 0.0, "airway_path_mm")
+    check_clearance(dense[:1], tissue, 0.0, f"{source}: airway_path_mm")
+    room = tissue.signed_distance(_densify(airway, 0.5))
+    # The phantom's airway path keeps the most room it can (phantoms/path.py), so a
+    # clearance beyond its widest point cannot be kept by any sweep; pushing the path
+    # anyway drives it through walls or out of the nostril (once: NaN poses).
+    if cfg.clearance_mm > room.max():
+        raise PathError(
+            "paths.clearance_mm",
+            f"no camera position along the airway keeps {cfg.clearance_mm:g} mm from tissue: "
+            f"the airway path of {source} is at most {room.max():.2f} mm from tissue "
+            f"(narrowest {room.min():.2f} mm); lower the clearance",
+        )
     for _ in range(3):
         smooth = gaussian_filter1d(dense, sigma=1.5 / step, axis=0, mode="nearest")
         smooth[0], smooth[-1] = dense[0], dense[-1]
@@ -175,11 +248,21 @@ def preop_sweep(
             dense = smooth
         dense = tissue.push_to_clearance(dense, cfg.clearance_mm)
         dense = _densify(dense, step)
-    check_clearance(dense, tissue, cfg.clearance_mm, "preop sweep (airway_path_mm)")
+    try:
+        check_clearance(dense, tissue, cfg.clearance_mm, f"preop sweep ({source}: airway_path_mm)")
+    except PathError as exc:
+        if cfg.clearance_mm <= room.min():
+            raise
+        # The path had to be pushed away from tissue and that failed: say why.
+        raise type(exc)(
+            exc.source,
+            f"{exc.problem}; the airway path is only {room.min():.2f} mm from tissue in "
+            f"places, pushing it to paths.clearance_mm = {cfg.clearance_mm:g} mm failed",
+        ) from None
     s = _arclength(dense)
     length = s[-1]
     if length <= 0:
-        raise PathError("airway_path_mm", "the airway path has zero length")
+        raise PathError(source, "airway_path_mm: the airway path has zero length")
     s_frames = np.linspace(0.0, length, int(n_frames))
     eyes = _resample(dense, s_frames)
     ahead = _resample(dense, np.minimum(s_frames + cfg.lookahead_mm, length))
@@ -249,7 +332,13 @@ def intraop_path(
     Returns (n_frames, 4, 4) ``T_world_from_cam``.
     """
     rng = np.random.default_rng([int(seed), _KIND_SEED["intraop"]])
-    check_clearance(target.approach_mm[None], tissue, 0.0, "airway_path_mm[-1] (approach point)")
+    _check_target(target, tissue)
+    check_clearance(
+        target.approach_mm[None],
+        tissue,
+        0.0,
+        f"{target.source}: airway_path_mm[-1] (approach point)",
+    )
     for _attempt in range(int(cfg.max_tries)):
         keys: list[tuple[np.ndarray, np.ndarray]] = []
         draws = 0
@@ -281,7 +370,7 @@ def intraop_path(
         "intraop path",
         f"no collision-free path with {cfg.keyframes} keyframes found in {cfg.max_tries} tries "
         f"(clearance {cfg.clearance_mm} mm, view distance {list(cfg.view_distance_mm)} mm): the "
-        f"space in front of the target is too tight",
+        f"space in front of the target is too tight{_why_unseen(target, tissue)}",
     )
 
 
@@ -294,6 +383,7 @@ def eval_poses(
     valid viewpoints are found.
     """
     rng = np.random.default_rng([int(seed), _KIND_SEED["eval"]])
+    _check_target(target, tissue)
     poses = []
     draws = 0
     limit = 200 * int(n_poses) + 1000
@@ -309,6 +399,8 @@ def eval_poses(
     if len(poses) < n_poses:
         raise PathError(
             "eval poses",
-            f"found only {len(poses)} of {n_poses} valid evaluation viewpoints in {limit} draws",
+            f"found only {len(poses)} of {n_poses} valid evaluation viewpoints in {limit} draws "
+            f"(clearance {cfg.clearance_mm} mm, view distance {list(cfg.view_distance_mm)} mm): "
+            f"the space in front of the target is too tight{_why_unseen(target, tissue)}",
         )
     return np.stack(poses)

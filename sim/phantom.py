@@ -67,19 +67,30 @@ class Phantom:
 
 
 def _vec(value: Any, shape: tuple[int, ...], where: str, source: Path) -> np.ndarray:
+    if value is None:
+        raise PhantomError(source, f"{where}: missing")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise PhantomError(source, f"{where}: expected numbers, got {value!r}") from None
+        raise PhantomError(source, f"{where}: expected numbers, got {value!r}"[:200]) from None
     if shape[0] == -1:
         ok = arr.ndim == 2 and arr.shape[1] == shape[1]
+        want = f"(N, {shape[1]})"
     else:
         ok = arr.shape == shape
-    if not ok or not np.all(np.isfinite(arr)):
-        raise PhantomError(
-            source, f"{where}: expected finite array of shape {shape}, got {arr.shape}"
-        )
+        want = str(shape)
+    if not ok:
+        raise PhantomError(source, f"{where}: expected an array of shape {want}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise PhantomError(source, f"{where}: values are not finite (NaN or inf)")
     return arr
+
+
+def _int(value: Any, where: str, source: Path) -> int:
+    # JSON numbers only: int("1") or int(1.7) would hide a broken manifest.
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise PhantomError(source, f"{where}: expected an integer, got {value!r}"[:200])
+    return value
 
 
 def load_phantom(path: str | Path) -> Phantom:
@@ -91,9 +102,15 @@ def load_phantom(path: str | Path) -> Phantom:
     if not manifest.is_file():
         raise PhantomError(manifest, "phantom.json is missing (run `python -m phantoms generate`)")
     try:
-        data = json.loads(manifest.read_text())
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise PhantomError(manifest, "not a text file (invalid UTF-8)") from None
     except json.JSONDecodeError as exc:
         raise PhantomError(manifest, f"invalid JSON: {exc}") from None
+    except OSError as exc:
+        raise PhantomError(manifest, f"cannot read: {exc.strerror or exc}") from None
+    if not isinstance(data, dict):
+        raise PhantomError(manifest, f"expected a JSON object, got {type(data).__name__}")
     if data.get("format") != PHANTOM_FORMAT:
         raise PhantomError(
             manifest, f"format is {data.get('format')!r}, expected {PHANTOM_FORMAT!r}"
@@ -112,9 +129,12 @@ def load_phantom(path: str | Path) -> Phantom:
     for i, s in enumerate(raw_steps):
         if not isinstance(s, dict) or "mesh" not in s:
             raise PhantomError(manifest, f"steps[{i}]: expected an object with a 'mesh' path")
-        if int(s.get("step", i)) != i:
+        if _int(s.get("step", i), f"steps[{i}].step", manifest) != i:
             raise PhantomError(manifest, f"steps[{i}]: step index is {s.get('step')}, expected {i}")
-        steps.append(PhantomStep(i, str(s.get("name", f"step_{i}")), (root / s["mesh"]).absolute()))
+        mesh = s["mesh"]
+        if not isinstance(mesh, str) or not mesh:
+            raise PhantomError(manifest, f"steps[{i}].mesh: expected a file path, got {mesh!r}")
+        steps.append(PhantomStep(i, str(s.get("name", f"step_{i}")), (root / mesh).absolute()))
     roi = _vec(data["roi_box_mm"], (2, 3), "roi_box_mm", manifest)
     if np.any(roi[1] <= roi[0]):
         raise PhantomError(
@@ -133,7 +153,7 @@ def load_phantom(path: str | Path) -> Phantom:
         raise PhantomError(manifest, f"airway_path_mm: need at least 2 points, got {len(airway)}")
     return Phantom(
         path=root,
-        seed=int(data.get("seed", 0)),
+        seed=_int(data.get("seed", 0), "seed", manifest),
         steps=tuple(steps),
         roi_box_mm=roi,
         target_center_mm=center,
@@ -155,8 +175,14 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
     try:
         mesh = trimesh.load(p, force="mesh", process=True)
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
-        raise MeshError(p, f"cannot read mesh: {exc}") from None
-    return check_mesh(mesh, str(p))
+        # trimesh's own message ("list index out of range") does not say what is wrong.
+        raise MeshError(
+            p, f"not a readable mesh file (PLY/STL/OBJ expected): {type(exc).__name__}: {exc}"
+        ) from None
+    mesh = check_mesh(mesh, str(p))
+    # Lets path errors name the mesh file (sim.collision.TissueDistance.source).
+    mesh.metadata["file_path"] = str(p.absolute())
+    return mesh
 
 
 def check_mesh(mesh: trimesh.Trimesh, source: str = "mesh") -> trimesh.Trimesh:

@@ -77,6 +77,7 @@ def path_target(phantom: Phantom) -> PathTarget:
         normal=phantom.target_normal,
         roi_box_mm=phantom.roi_box_mm,
         approach_mm=phantom.airway_path_mm[-1],
+        source=str(phantom.path / "phantom.json"),
     )
 
 
@@ -100,7 +101,12 @@ def plan_sequences(
         planned.append(PlannedSequence(name, kind, step, poses, tracked, seed))
 
     preop = preop_sweep(
-        phantom.airway_path_mm, phantom.target_center_mm, tissue0, pc.preop_frames, pc
+        phantom.airway_path_mm,
+        phantom.target_center_mm,
+        tissue0,
+        pc.preop_frames,
+        pc,
+        source=str(phantom.path / "phantom.json"),
     )
     add("preop", "preop", 0, preop, exact=False)
     evals = eval_poses(target, tissue0, pc.eval_poses, cfg.seed, pc) if include_eval else None
