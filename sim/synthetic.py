@@ -77,3 +77,23 @@ def write_toy_phantom(out_dir: str | Path, n_bites: int = 2, seed: int = 0) -> P
         }
         (tmp / "phantom.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m sim.synthetic --seed S --bites N --out DIR``: the phantom generator's
+    command-line contract, for ``sim dataset --phantom-cmd`` in quick tests."""
+    import argparse  # noqa: PLC0415 - only for the command line
+
+    p = argparse.ArgumentParser(prog="python -m sim.synthetic", description=main.__doc__)
+    p.add_argument("--seed", type=int, default=0, help="recorded in phantom.json (0)")
+    p.add_argument("--bites", type=int, default=2, help="surgical steps (2)")
+    p.add_argument("--out", type=Path, required=True, help="phantom folder (replaced atomically)")
+    args = p.parse_args(argv)
+    if args.bites < 0:
+        p.error("--bites must be >= 0")
+    write_toy_phantom(args.out, args.bites, args.seed)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -96,18 +96,6 @@ def test_sigterm_removes_the_temporary_output_and_keeps_the_old_one(tmp_path: Pa
     assert signal.getsignal(signal.SIGTERM) == handler  # restored
 
 
-def _generator(tmp_path: Path) -> str:
-    """A stand-in for ``python -m phantoms generate`` that writes the toy phantom."""
-    gen = tmp_path / "gen.py"
-    gen.write_text(
-        "import argparse\nfrom sim.synthetic import write_toy_phantom\n"
-        "p = argparse.ArgumentParser(); p.add_argument('--seed', type=int)\n"
-        "p.add_argument('--bites', type=int); p.add_argument('--out')\n"
-        "a = p.parse_args(); write_toy_phantom(a.out, a.bites, a.seed)\n"
-    )
-    return f"{sys.executable} {gen}"
-
-
 def test_dataset_options_that_crashed_now_give_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -127,19 +115,10 @@ def test_dataset_options_that_crashed_now_give_one_line(
 
 
 def test_dataset_resume_renders_broken_seeds_again_and_refuses_other_options(
-    tmp_path: Path,
+    tmp_path: Path, tiny_sim_config: SimConfig
 ) -> None:
-    cfg = replace_in(
-        SimConfig(),
-        **{
-            "camera.width": 32,
-            "camera.height": 24,
-            "imaging.spp": 1,
-            "paths.preop_frames": 2,
-            "paths.intraop_frames": 2,
-        },
-    )
-    gen = _generator(tmp_path)
+    cfg = tiny_sim_config
+    gen = f"{sys.executable} -m sim.synthetic"  # the toy phantom, generator contract
     out = tmp_path / "ds"
     first = build_dataset(out, [1, 2], cfg, bites=1, phantom_cmd=gen, progress=False)
     rgb = Sequence(out / "seed_1/step_01").rgb(0)

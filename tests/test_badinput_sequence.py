@@ -288,48 +288,37 @@ FRAME_CASES: list[tuple[str, str, Callable[[Path], None], type[Exception], str]]
 ]
 
 
+@pytest.mark.parametrize("tool", ["export", "retrack"])
 @pytest.mark.parametrize(
     ("name", "damage", "error", "message"),
     [case[1:] for case in FRAME_CASES],
     ids=[case[0] for case in FRAME_CASES],
 )
-def test_bad_frame_is_refused_and_the_earlier_export_is_kept(
+def test_bad_frame_is_refused_and_the_earlier_output_is_kept(
     seq: Path,
     tmp_path: Path,
+    tool: str,
     name: str,
     damage: Callable[[Path], None],
     error: type[Exception],
     message: str,
 ) -> None:
-    out = tmp_path / "ns"
-    export_nerfstudio(seq, out)
+    out = tmp_path / "out"
+
+    def run() -> None:
+        if tool == "export":
+            export_nerfstudio(seq, out)
+        else:
+            retrack_sequence(seq, out, TrackingConfig(), 0)
+
+    run()
     before = tree(out)
     damage(seq / name)
     with pytest.raises(error, match=message) as info:
-        export_nerfstudio(seq, out)
+        run()
     assert info.value.source == str(seq / name)  # type: ignore[attr-defined]
     assert tree(out) == before
     assert leftovers(tmp_path) == []
-
-
-@pytest.mark.parametrize(
-    ("name", "damage", "error", "message"),
-    [case[1:] for case in FRAME_CASES],
-    ids=[case[0] for case in FRAME_CASES],
-)
-def test_bad_frame_is_refused_by_retrack(
-    seq: Path,
-    tmp_path: Path,
-    name: str,
-    damage: Callable[[Path], None],
-    error: type[Exception],
-    message: str,
-) -> None:
-    damage(seq / name)
-    with pytest.raises(error, match=message) as info:
-        retrack_sequence(seq, tmp_path / "out", TrackingConfig(), 0)
-    assert info.value.source == str(seq / name)  # type: ignore[attr-defined]
-    assert not (tmp_path / "out").exists() and leftovers(tmp_path) == []
 
 
 def test_export_cli_bad_frame_is_one_line(

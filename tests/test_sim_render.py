@@ -396,30 +396,16 @@ def test_export_nerfstudio_axes_and_round_trip(rendered: tuple[Path, Path], tmp_
     )
 
 
-def test_dataset_runs_generator_subprocess_and_lists_sequences(tmp_path: Path) -> None:
+def test_dataset_runs_generator_subprocess_and_lists_sequences(
+    tmp_path: Path, tiny_sim_config: SimConfig
+) -> None:
     assert parse_seeds("100-102,7") == [7, 100, 101, 102]
     with pytest.raises(ConfigError):
         parse_seeds("5-3")
     # A stand-in generator CLI with the phantoms contract (--seed --bites --out).
-    gen = tmp_path / "gen.py"
-    gen.write_text(
-        "import argparse\nfrom sim.synthetic import write_toy_phantom\n"
-        "p = argparse.ArgumentParser(); p.add_argument('--seed', type=int); p.add_argument('--bites', type=int)\n"
-        "p.add_argument('--out'); a = p.parse_args()\nwrite_toy_phantom(a.out, a.bites, a.seed)\n"
-    )
-    cfg = replace_in(
-        SimConfig(),
-        **{
-            "camera.width": 32,
-            "camera.height": 24,
-            "imaging.spp": 1,
-            "paths.preop_frames": 2,
-            "paths.intraop_frames": 2,
-        },
-    )
-    ds = build_dataset(
-        tmp_path / "ds", [3, 4], cfg, bites=1, phantom_cmd=f"{sys.executable} {gen}", progress=False
-    )
+    gen = f"{sys.executable} -m sim.synthetic"
+    cfg = tiny_sim_config
+    ds = build_dataset(tmp_path / "ds", [3, 4], cfg, bites=1, phantom_cmd=gen, progress=False)
     listed = json.loads((tmp_path / "ds/dataset.json").read_text())
     assert listed == ds and listed["format"] == "endoscopic-chisel/dataset"
     assert [(e["path"], e["phantom_seed"]) for e in listed["sequences"]] == [
@@ -445,7 +431,7 @@ def test_dataset_runs_generator_subprocess_and_lists_sequences(tmp_path: Path) -
         [3],
         replace_in(cfg, seed=7),
         bites=1,
-        phantom_cmd=f"{sys.executable} {gen}",
+        phantom_cmd=gen,
         progress=False,
     )
     c7 = json.loads((tmp_path / "ds7/seed_3/render.json").read_text())["config"]
@@ -462,22 +448,13 @@ def test_dataset_runs_generator_subprocess_and_lists_sequences(tmp_path: Path) -
         )
 
 
-def test_render_draws_appearance_when_randomization_is_enabled(tmp_path: Path) -> None:
+def test_render_draws_appearance_when_randomization_is_enabled(
+    tmp_path: Path, tiny_sim_config: SimConfig
+) -> None:
     """`randomization.enabled` in a render config: one draw from the master seed, recorded
     so that rendering with the recorded config gives the same bytes."""
     phantom = write_toy_phantom(tmp_path / "phantom", n_bites=1)
-    base = replace_in(
-        SimConfig(),
-        **{
-            "camera.width": 32,
-            "camera.height": 24,
-            "imaging.spp": 1,
-            "paths.preop_frames": 2,
-            "paths.intraop_frames": 2,
-            "paths.eval_poses": 1,
-            "seed": 5,
-        },
-    )
+    base = replace_in(tiny_sim_config, **{"paths.eval_poses": 1, "seed": 5})
     on = replace_in(base, **{"randomization.enabled": True})
     header = render_phantom(phantom, tmp_path / "on", on, progress=False)
     drawn = randomize(on, 5)
