@@ -30,6 +30,8 @@ MAX_IMAGE_SIDE = 8192
 """Largest image width/height in pixels: beyond it the per-pixel ray arrays exhaust memory."""
 MAX_FRAMES = 100_000
 """Largest number of frames (or evaluation poses) of one sequence."""
+MIN_CLEARANCE_MM = 0.1
+"""Smallest camera-to-tissue clearance of the paths, mm."""
 
 
 def _show(value: Any) -> str:
@@ -502,8 +504,12 @@ class PathConfig:
 
     def __post_init__(self) -> None:
         _check_fields(self, "paths")
+        # Paths are sampled every clearance / 4 mm: a near-zero clearance would mean
+        # millions of collision queries (and the scope tip is ~2 mm in radius anyway).
         _check(
-            self.clearance_mm > 0, "paths.clearance_mm", f"must be > 0 mm, got {self.clearance_mm}"
+            self.clearance_mm >= MIN_CLEARANCE_MM,
+            "paths.clearance_mm",
+            f"must be >= {MIN_CLEARANCE_MM} mm, got {self.clearance_mm}",
         )
         for name in ("preop_frames", "intraop_frames", "eval_poses", "keyframes", "max_tries"):
             _check(

@@ -73,6 +73,7 @@ BAD_VALUES: list[tuple[dict[str, Any], str, str]] = [
     ({"camera": {"K": "eye"}}, "camera.K", "expected a list"),
     ({"seed": True}, "seed", "expected an integer"),
     ({"variant": "gpu"}, "variant", "expected one of"),
+    ({"paths": {"clearance_mm": 0.001}}, "paths.clearance_mm", "must be >= 0.1 mm"),
     ({"camera": 3}, "camera", "expected a mapping"),
 ]
 
