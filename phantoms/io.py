@@ -28,9 +28,13 @@ def _umask() -> int:
 
 def check_output_dir(path: str | Path) -> Path:
     """Raise :class:`OutputError` unless ``path``'s parent can hold a new folder."""
-    path = Path(path).absolute()
+    path = Path(os.path.abspath(path))
     if path.exists() and not path.is_dir():
         raise OutputError(path, "exists and is not a folder")
+    cwd = Path.cwd().resolve()
+    if path.resolve() == cwd or path.resolve() in cwd.parents:
+        # The atomic swap replaces the folder whole: `--out .` would delete its contents.
+        raise OutputError(path, "holds the current folder; replacing it would delete that")
     parent = path.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)

@@ -290,6 +290,18 @@ def test_unwritable_output_raises_output_error(tmp_path):
         check_output_dir(blocker)  # exists and is not a folder
 
 
+def test_output_holding_the_working_folder_is_refused(tmp_path, monkeypatch):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "notes.txt").write_text("mine")
+    monkeypatch.chdir(work)
+    for out in (".", str(tmp_path)):
+        with pytest.raises(OutputError, match="holds the current folder"):
+            with atomic_dir(out):
+                pass
+    assert (work / "notes.txt").read_text() == "mine"
+
+
 def test_phantoms_imports_neither_chisel_nor_sim():
     import subprocess
     import sys
