@@ -91,13 +91,15 @@ def check_output_outside(out: str | Path, *inputs: str | Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
+def atomic_dir(path: str | Path, marker: str) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; on success it replaces ``path``.
 
     An existing ``path`` is kept until the new folder is complete, then swapped out and
     deleted. On an exception the temporary folder is removed and ``path`` is untouched.
-    Refused (:class:`InvalidInputError`): a ``path`` that is an existing file, and one
-    that holds the current working folder (``.`` would replace everything in it).
+    ``marker`` is the file every folder of this kind holds (``sequence.json``, ...): an
+    existing non-empty ``path`` without it is not an earlier output of ours, and is
+    refused rather than deleted. Refused as well (:class:`InvalidInputError`): a ``path``
+    that is an existing file, and one that holds the current working folder.
     """
     path = Path(os.path.abspath(path))
     if path.exists() and not path.is_dir():
@@ -106,6 +108,12 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     if path.resolve() == cwd or path.resolve() in cwd.parents:
         raise InvalidInputError(
             path, "the output folder holds the current folder; replacing it would delete that"
+        )
+    if path.is_dir() and not (path / marker).exists() and any(path.iterdir()):
+        raise InvalidInputError(
+            path,
+            f"is a folder with other content (no {marker}, so not an earlier output); "
+            "refusing to replace it: choose a new or empty folder",
         )
     check_writable_parent(path)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))

@@ -14,6 +14,7 @@ import importlib
 import logging
 import sys
 
+from chisel.cliargs import check_outputs
 from chisel.errors import run_command
 
 _COMMANDS: dict[str, str] = {
@@ -75,4 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
-    return run_command(f"chisel {args.command}", lambda: args.func(args))
+    def command() -> int:
+        check_outputs(args)  # before anything is read or written
+        return args.func(args)
+
+    return run_command(f"chisel {args.command}", command)

@@ -1083,7 +1083,7 @@ def import_reference(
         parts.append((f"step_{i}", args[str(i)]))
     root = input_json.absolute().parent
     done: list[ReferencePart] = []
-    with _output_errors(Path(out_dir)), atomic_dir(out_dir) as tmp:
+    with _output_errors(Path(out_dir)), atomic_dir(out_dir, REFERENCE_MANIFEST) as tmp:
         for name, part in parts:
             done.append(
                 _import_reference_part(

@@ -160,7 +160,7 @@ class SequenceWriter:
         self._tmp: Path | None = None
 
     def __enter__(self) -> SequenceWriter:
-        self._ctx = atomic_dir(self.path)
+        self._ctx = atomic_dir(self.path, "sequence.json")
         self._tmp = self._ctx.__enter__()
         for sub in ("rgb", "depth", "mask"):
             (self._tmp / sub).mkdir()

@@ -56,9 +56,19 @@ def check_output_dir(path: str | Path) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary folder beside ``path``; on success it replaces ``path``."""
+def atomic_dir(path: str | Path, marker: str = "phantom.json") -> Iterator[Path]:
+    """Yield a temporary folder beside ``path``; on success it replaces ``path``.
+
+    An existing non-empty ``path`` without ``marker`` is not an earlier output: it is
+    refused (:class:`OutputError`) rather than deleted.
+    """
     path = check_output_dir(path)
+    if path.is_dir() and not (path / marker).exists() and any(path.iterdir()):
+        raise OutputError(
+            path,
+            f"is a folder with other content (no {marker}, so not an earlier phantom); "
+            "refusing to replace it: choose a new or empty folder",
+        )
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     try:
         yield tmp

@@ -78,7 +78,7 @@ def export_nerfstudio(
     k1, k2, p1, p2, k3 = (float(x) for x in cam.dist)
     scale = UNIT_SCALE[units]
     out = Path(out_dir)
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, "transforms.json") as tmp:
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         if seq.has_depth:

@@ -219,7 +219,7 @@ def render_phantom(
         "config": config_to_dict(cfg),
     }
     out = Path(out_dir)
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, "render.json") as tmp:
         (tmp / "eval").mkdir()
         for k, mesh in enumerate(meshes):
             todo = [p for p in planned if p.step == k]

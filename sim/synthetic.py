@@ -46,7 +46,7 @@ def write_toy_phantom(out_dir: str | Path, n_bites: int = 2, seed: int = 0) -> P
     meshes = toy_meshes(n_bites)
     out = Path(out_dir)
     target = CHAMBER_CENTER_MM + np.array([CHAMBER_RADIUS_MM, 0.0, 0.0])
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, "phantom.json") as tmp:
         (tmp / "meshes").mkdir()
         steps = []
         for k, m in enumerate(meshes):

@@ -34,7 +34,7 @@ def test_atomic_dir_refuses_a_file_and_the_working_folder(
     f = tmp_path / "afile"
     f.write_text("keep me")
     with pytest.raises(InvalidInputError, match="not a folder"):
-        with atomic_dir(f):
+        with atomic_dir(f, "x"):
             pass
     assert f.read_text() == "keep me"
     work = tmp_path / "work"
@@ -43,7 +43,7 @@ def test_atomic_dir_refuses_a_file_and_the_working_folder(
     monkeypatch.chdir(work)
     for out in (".", str(tmp_path)):
         with pytest.raises(InvalidInputError, match="holds the current folder"):
-            with atomic_dir(out):
+            with atomic_dir(out, "x"):
                 pass
     assert (work / "notes.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "work"]  # nothing left over
@@ -52,8 +52,24 @@ def test_atomic_dir_refuses_a_file_and_the_working_folder(
 def test_atomic_dir_gives_the_usual_permissions(tmp_path: Path) -> None:
     old = os.umask(0o022)
     try:
-        with atomic_dir(tmp_path / "out") as tmp:
+        with atomic_dir(tmp_path / "out", "x") as tmp:
             (tmp / "x").write_text("1")
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o755
+
+
+def test_atomic_dir_replaces_only_its_own_kind_of_folder(tmp_path: Path) -> None:
+    out = tmp_path / "seq"
+    out.mkdir()
+    (out / "thesis.tex").write_text("months of work")
+    with pytest.raises(InvalidInputError, match="no sequence.json"):
+        with atomic_dir(out, "sequence.json"):
+            pass
+    assert (out / "thesis.tex").read_text() == "months of work"
+    (out / "thesis.tex").unlink()
+    with atomic_dir(out, "sequence.json") as tmp:  # empty: fine
+        (tmp / "sequence.json").write_text("1")
+    with atomic_dir(out, "sequence.json") as tmp:  # an earlier output: replaced
+        (tmp / "sequence.json").write_text("2")
+    assert (out / "sequence.json").read_text() == "2"

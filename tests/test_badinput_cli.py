@@ -83,7 +83,7 @@ def test_sigterm_removes_the_temporary_output_and_keeps_the_old_one(tmp_path: Pa
     handler = signal.getsignal(signal.SIGTERM)
 
     def killed_midway() -> int:
-        with atomic_dir(out) as tmp:
+        with atomic_dir(out, "old.txt") as tmp:
             (tmp / "half.txt").write_text("half")
             os.kill(os.getpid(), signal.SIGTERM)
         return 0

@@ -414,7 +414,8 @@ def test_cli_reports_bad_input_and_keeps_output(scene, tmp_path, capsys) -> None
     write_images(tmp_path / "rgb", scene.raw_rgb)
     write_matrix_rows(tmp_path / "p.txt", scene.poses[:-1])  # one pose short
     write_opencv_calibration(tmp_path / "c.yaml", RAW_CAMERA)
-    (tmp_path / "seq").mkdir()
+    (tmp_path / "seq").mkdir()  # an earlier output (it has a sequence.json)
+    (tmp_path / "seq" / "sequence.json").write_text("{}")
     (tmp_path / "seq" / "keep.txt").write_text("earlier result")
     rc = chisel_main(
         [

@@ -268,13 +268,13 @@ def test_atomic_dir_keeps_the_old_folder_on_failure(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "old.txt").write_text("old")
-    with pytest.raises(RuntimeError), atomic_dir(out) as tmp:
+    with pytest.raises(RuntimeError), atomic_dir(out, marker="old.txt") as tmp:
         (tmp / "new.txt").write_text("new")
         raise RuntimeError("boom")
     assert (out / "old.txt").read_text() == "old"
     assert not (out / "new.txt").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, marker="old.txt") as tmp:
         (tmp / "new.txt").write_text("new")
     assert sorted(p.name for p in out.iterdir()) == ["new.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
@@ -300,6 +300,19 @@ def test_output_holding_the_working_folder_is_refused(tmp_path, monkeypatch):
             with atomic_dir(out):
                 pass
     assert (work / "notes.txt").read_text() == "mine"
+
+
+def test_a_folder_that_is_not_an_earlier_phantom_is_not_replaced(tmp_path):
+    out = tmp_path / "thesis"
+    out.mkdir()
+    (out / "thesis.tex").write_text("months of work")
+    with pytest.raises(OutputError, match="no phantom.json"):
+        with atomic_dir(out):
+            pass
+    assert (out / "thesis.tex").read_text() == "months of work"
+    (tmp_path / "empty").mkdir()
+    with atomic_dir(tmp_path / "empty") as tmp:  # an empty folder is fine
+        (tmp / "phantom.json").write_text("{}")
 
 
 def test_phantoms_imports_neither_chisel_nor_sim():

@@ -124,7 +124,8 @@ def test_fewer_frames_than_poses(scene, data) -> None:
 
 def test_video_shorter_than_its_pose_file(scene, data) -> None:
     write_video(data / "v.avi", scene.raw_rgb[:4])
-    (data / "seq").mkdir()
+    (data / "seq").mkdir()  # an earlier output (it has a sequence.json)
+    (data / "seq" / "sequence.json").write_text("{}")
     (data / "seq" / "old.txt").write_text("keep")
     with pytest.raises(
         PoseError, match=r"v\.avi: has 4 frames but .*poses\.txt has 6 poses \(a truncated video"

@@ -14,6 +14,7 @@ from typing import Any
 
 import torch
 
+from chisel.cliargs import Output
 from chisel.depth import (
     DEFAULT_CHECKPOINT,
     DepthNetConfig,
@@ -319,7 +320,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="dataset folders (dataset.json), dataset.json files or sequence folders",
     )
     t.add_argument(
-        "--out", required=True, help="checkpoint to write (.pt; a .json sidecar beside it)"
+        "--out",
+        required=True,
+        help="checkpoint to write (.pt; a .json sidecar beside it)",
+        action=Output,
     )
     training(t, epochs=30, lr=2e-3)
     t.add_argument(
@@ -359,7 +363,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         required=True,
         help="preoperative sequence folder(s) with RGB and depth (CT surface renders)",
     )
-    f.add_argument("--out", required=True, help="fine-tuned checkpoint to write (.pt)")
+    f.add_argument(
+        "--out", required=True, help="fine-tuned checkpoint to write (.pt)", action=Output
+    )
     training(f, epochs=3, lr=1e-4)
     f.set_defaults(func=_cmd_finetune)
 
@@ -370,7 +376,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="checkpoint (.pt) or TorchScript export (default: the shipped model)",
     )
     pr.add_argument("--sequence", required=True, help="input sequence folder (needs RGB)")
-    pr.add_argument("--out", required=True, help="new sequence folder to write (atomically)")
+    pr.add_argument(
+        "--out", required=True, help="new sequence folder to write (atomically)", action=Output
+    )
     common(pr)
     pr.set_defaults(func=_cmd_predict)
 
@@ -391,5 +399,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     x = sub.add_parser("export", help="export to TorchScript (.pt) or ONNX (.onnx)")
     x.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT), help="checkpoint (.pt)")
-    x.add_argument("--out", required=True, help="model.pt (TorchScript) or model.onnx")
+    x.add_argument(
+        "--out", required=True, help="model.pt (TorchScript) or model.onnx", action=Output
+    )
     x.set_defaults(func=_cmd_export)

@@ -6,6 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from chisel.cliargs import Output
 from chisel.errors import InvalidInputError
 from chisel.evaluate import (
     RoiBox,
@@ -169,7 +170,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "when the first number is negative",
     )
     p.add_argument("--step", type=int, help="surgical step (0 = preop)")
-    p.add_argument("--out", type=Path, help="output step_metrics.json")
+    p.add_argument("--out", type=Path, help="output step_metrics.json", action=Output)
     p.add_argument(
         "--samples", type=int, default=50_000, help="surface samples per mesh in the box"
     )
@@ -202,7 +203,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     w.add_argument(
         "--run", nargs="+", required=True, metavar="VALUE=METRICS_JSON", help="one per swept value"
     )
-    w.add_argument("--out", type=Path, required=True, help="output CSV")
+    w.add_argument("--out", type=Path, required=True, help="output CSV", action=Output)
     w.set_defaults(func=_run_sweep)
 
     r = subparsers.add_parser(
@@ -226,5 +227,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--sweep", nargs="+", metavar="NAME=CSV", help="sweep CSVs (chisel evaluate sweep)"
     )
     r.add_argument("--title", default="Endoscopic Chisel: evaluation report")
-    r.add_argument("--out", type=Path, required=True, help="output .html")
+    r.add_argument("--out", type=Path, required=True, help="output .html", action=Output)
     r.set_defaults(func=_run_report)

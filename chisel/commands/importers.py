@@ -6,6 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from chisel.cliargs import Output
 from chisel.importers import (
     FrameConfig,
     PoseConfig,
@@ -169,7 +170,9 @@ def _add_frame_parser(sub: argparse._SubParsersAction, kind: str) -> None:
     p.add_argument("source", help=what)
     p.add_argument("--poses", required=True, help="pose file (see above)")
     p.add_argument("--calib", required=True, help="calibration .yaml/.xml/.json")
-    p.add_argument("--out", required=True, help="sequence folder to write (replaced atomically)")
+    p.add_argument(
+        "--out", required=True, help="sequence folder to write (replaced atomically)", action=Output
+    )
     g = p.add_argument_group("poses")
     g.add_argument(
         "--pose-format",
@@ -269,7 +272,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_run_reference)
     p.add_argument("input_json", help="the dataset's input.json")
-    p.add_argument("--out", required=True, help="folder to write (replaced atomically)")
+    p.add_argument(
+        "--out", required=True, help="folder to write (replaced atomically)", action=Output
+    )
     p.add_argument("--with-depth", action="store_true", help="also import depths/*.npy")
     p.add_argument(
         "--depth-scale-mm", type=float, default=1.0, help="mm per depth unit (default 1)"

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from chisel.atomic import atomic_path, atomic_write_text
+from chisel.cliargs import Output
 from chisel.errors import InvalidInputError
 
 log = logging.getLogger(__name__)
@@ -43,7 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=_FMT,
     )
     p.add_argument("--ct", required=True, type=Path, help="NIfTI volume or surface mesh")
-    p.add_argument("--out", required=True, type=Path, help="output mesh (.ply/.stl/.obj)")
+    p.add_argument(
+        "--out", required=True, type=Path, help="output mesh (.ply/.stl/.obj)", action=Output
+    )
     p.add_argument(
         "--kind",
         choices=("auto", "intensity", "label"),
@@ -75,7 +78,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="CT segmentation: mesh or NIfTI",
     )
     p.add_argument("--sequence", required=True, type=Path, help="preoperative sequence folder")
-    p.add_argument("--out", required=True, type=Path, help="output model file (.npz)")
+    p.add_argument(
+        "--out", required=True, type=Path, help="output model file (.npz)", action=Output
+    )
     p.add_argument("--voxel-size-mm", type=float, default=0.5, help="voxel edge, mm (0.5)")
     p.add_argument("--trunc-mm", type=float, default=2.0, help="truncation distance, mm (2.0)")
     p.add_argument("--margin-mm", type=float, default=3.0, help="margin around the data, mm")
@@ -94,10 +99,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--model", required=True, type=Path, help="model of the previous step")
     p.add_argument("--sequence", required=True, type=Path, help="sequence of this step")
-    p.add_argument("--out", required=True, type=Path, help="updated model file (.npz)")
-    p.add_argument("--report", type=Path, default=None, help="JSON report (default OUT.json)")
     p.add_argument(
-        "--masks", type=Path, default=None, help="optional .npz of the change masks (N, H, W)"
+        "--out", required=True, type=Path, help="updated model file (.npz)", action=Output
+    )
+    p.add_argument(
+        "--report", type=Path, default=None, help="JSON report (default OUT.json)", action=Output
+    )
+    p.add_argument(
+        "--masks",
+        type=Path,
+        default=None,
+        help="optional .npz of the change masks (N, H, W)",
+        action=Output,
     )
     p.add_argument(
         "--depth-source",
@@ -174,7 +187,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=_FMT,
     )
     p.add_argument("--model", required=True, type=Path, help="model file (.npz)")
-    p.add_argument("--out", required=True, type=Path, help="output mesh (.ply/.stl/.obj)")
+    p.add_argument(
+        "--out", required=True, type=Path, help="output mesh (.ply/.stl/.obj)", action=Output
+    )
     p.set_defaults(func=_cmd_mesh)
 
     p = sub.add_parser(
@@ -189,7 +204,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--model", type=Path, help="model file (.npz)")
     src.add_argument("--mesh", type=Path, help="mesh or CT segmentation (world mm)")
     p.add_argument("--sequence", required=True, type=Path, help="sequence folder (poses)")
-    p.add_argument("--out", required=True, type=Path, help="output sequence folder")
+    p.add_argument("--out", required=True, type=Path, help="output sequence folder", action=Output)
     p.add_argument("--true-poses", action="store_true", help="render at the true poses")
     p.set_defaults(func=_cmd_render_depth)
 

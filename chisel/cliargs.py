@@ -1,0 +1,88 @@
+"""Command-line outputs that may not overwrite the command's inputs or one another.
+
+An argument declared with ``action=Output`` is something the command writes. Before the
+command runs, :func:`check_outputs` refuses an output that is an input given on the same
+command line, holds one (an atomic folder write would delete it) or lies inside an input
+folder (it would change it), and two outputs that are the same path. Inputs are all other
+path-like arguments that exist, including the path in ``kind:PATH`` specs such as
+``--depth-source sequence:DIR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from chisel.errors import InvalidInputError
+
+
+class Output(argparse.Action):
+    """``add_argument(..., action=Output)``: store the value and record it as an output."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.__dict__.setdefault("_outputs", []).append(self.dest)
+
+
+def _option(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def _paths(value: Any) -> Iterator[Path]:
+    """The existing paths a parsed argument value names (none for numbers, flags...)."""
+    if isinstance(value, list | tuple):
+        for v in value:
+            yield from _paths(v)
+        return
+    if not isinstance(value, str | Path) or str(value) == "":
+        return
+    candidates = [Path(value)]
+    kind, sep, rest = str(value).partition(":")
+    if sep and rest and kind.isalpha():  # "sequence:DIR", "network:CHECKPOINT", "1=run.json"
+        candidates.append(Path(rest))
+    if "=" in str(value):
+        candidates.append(Path(str(value).split("=", 1)[1]))
+    for p in candidates:
+        try:
+            if p.exists():
+                yield p
+        except OSError:  # a name too long to be a path, say
+            continue
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Raise :class:`InvalidInputError` (naming the option) if an output would overwrite an
+    input or another output of the same command line."""
+    out_dests = list(dict.fromkeys(getattr(args, "_outputs", [])))
+    outputs = [(d, Path(getattr(args, d))) for d in out_dests if getattr(args, d) is not None]
+    for i, (da, a) in enumerate(outputs):
+        for db, b in outputs[i + 1 :]:
+            if a.resolve() == b.resolve():
+                raise InvalidInputError(
+                    _option(db), f"{b} is also {_option(da)}: one output would overwrite the other"
+                )
+    for dest, value in vars(args).items():
+        if dest in out_dests or dest.startswith("_") or callable(value):
+            continue
+        for inp in _paths(value):
+            i = inp.resolve()
+            for d, o in outputs:
+                r = o.resolve()
+                if r == i or r in i.parents:
+                    raise InvalidInputError(
+                        _option(d), f"{o} would overwrite the input {_option(dest)} {inp}"
+                    )
+                if inp.is_dir() and i in r.parents:
+                    raise InvalidInputError(
+                        _option(d),
+                        f"{o} lies inside the input folder {_option(dest)} {inp}: "
+                        "write outputs outside the inputs",
+                    )

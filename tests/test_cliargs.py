@@ -1,0 +1,107 @@
+"""chisel commands refuse outputs that would overwrite their inputs or each other.
+
+The check runs before anything is read, so the inputs here only need to exist.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from chisel.cli import main
+
+
+@pytest.fixture
+def files(tmp_path: Path) -> dict[str, Path]:
+    seq = tmp_path / "r" / "step_01"
+    seq.mkdir(parents=True)
+    (seq / "sequence.json").write_text("{}")
+    (seq / "poses.txt").write_text("")
+    model = tmp_path / "model.npz"
+    model.write_bytes(b"not read")
+    surface = tmp_path / "surf.ply"
+    surface.write_bytes(b"not read")
+    return {"seq": seq, "model": model, "surface": surface, "root": tmp_path}
+
+
+def refused(argv: list[str], capsys: pytest.CaptureFixture[str], *words: str) -> None:
+    rc = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1, err
+    for w in words:
+        assert w in err, err
+
+
+def test_update_refuses_overwriting_its_model_and_sequence(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    model, seq = str(files["model"]), str(files["seq"])
+    base = ["update", "--model", model, "--sequence", seq]
+    refused([*base, "--out", model], capsys, "--out", "would overwrite the input --model")
+    refused(
+        [*base, "--out", str(files["root"] / "u.npz"), "--report", model],
+        capsys,
+        "--report",
+        "would overwrite the input --model",
+    )
+    refused(
+        [*base, "--out", str(files["root"] / "u.npz"), "--report", f"{seq}/poses.txt"],
+        capsys,
+        "--report",
+        "lies inside the input folder --sequence",
+    )
+    refused(
+        [*base, "--out", str(files["root"] / "u.npz"), "--masks", str(files["root"] / "u.npz")],
+        capsys,
+        "one output would overwrite the other",
+    )
+    # The path inside a "sequence:DIR" depth source is an input too.
+    other = files["root"] / "pred"
+    other.mkdir()
+    refused(
+        [*base, "--depth-source", f"sequence:{other}", "--out", str(other / "u.npz")],
+        capsys,
+        "lies inside the input folder --depth-source",
+    )
+    assert files["model"].read_bytes() == b"not read"
+
+
+def test_folder_outputs_may_not_hold_their_input(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    seq, surface = str(files["seq"]), str(files["surface"])
+    parent = str(files["seq"].parent)
+    refused(
+        ["render-depth", "--mesh", surface, "--sequence", seq, "--out", parent],
+        capsys,
+        "would overwrite the input --sequence",
+    )
+    refused(
+        ["render-depth", "--mesh", surface, "--sequence", seq, "--out", seq],
+        capsys,
+        "would overwrite the input --sequence",
+    )
+    refused(
+        ["depth", "predict", "--sequence", seq, "--out", parent],
+        capsys,
+        "would overwrite the input --sequence",
+    )
+    assert (files["seq"] / "sequence.json").read_text() == "{}"
+
+
+def test_file_outputs_may_not_be_an_input(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    surface, seq = str(files["surface"]), str(files["seq"])
+    refused(
+        ["build", "--surface", surface, "--sequence", seq, "--out", surface],
+        capsys,
+        "would overwrite the input --surface",
+    )
+    refused(
+        ["depth", "predict", "--sequence", seq, "--out", f"{seq}/../step_01"],
+        capsys,
+        "would overwrite the input --sequence",
+    )
+    assert files["surface"].read_bytes() == b"not read"
