@@ -36,6 +36,10 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     On an exception the temporary file is removed and ``path`` is left as it was.
     """
     path = Path(path)
+    if path.name in ("", ".", ".."):
+        raise InvalidInputError(path, "not a file name")
+    if path.is_dir():
+        raise InvalidInputError(path, "is a folder; expected the path of a file to write")
     check_writable_parent(path)
     fd, tmp = tempfile.mkstemp(
         prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent

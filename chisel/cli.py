@@ -76,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
+
     def command() -> int:
         check_outputs(args)  # before anything is read or written
         return args.func(args)

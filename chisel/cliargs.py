@@ -11,6 +11,7 @@ path-like arguments that exist, including the path in ``kind:PATH`` specs such a
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -86,3 +87,15 @@ def check_outputs(args: argparse.Namespace) -> None:
                         f"{o} lies inside the input folder {_option(dest)} {inp}: "
                         "write outputs outside the inputs",
                     )
+
+
+def finite_float(text: str) -> float:
+    """argparse ``type`` for a number option: NaN or inf would slip past every range check
+    (``nan < 0`` is false) and switch gates off silently."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value

@@ -120,14 +120,15 @@ class TsdfModel:
             raise InvalidInputError("bounds_mm", f"empty box: min {lo.tolist()} max {hi.tolist()}")
         if not voxel_size_mm > 0:
             raise InvalidInputError("voxel_size_mm", f"must be > 0, got {voxel_size_mm}")
-        dims = np.ceil((hi - lo) / voxel_size_mm).astype(np.int64) + 1
-        n = int(np.prod(dims))
-        if n > 400_000_000:
+        dims_f = np.ceil((hi - lo) / voxel_size_mm) + 1
+        n_f = float(np.prod(dims_f))  # in floats: a huge box would overflow int64
+        if n_f > 400_000_000:
             raise InvalidInputError(
                 "voxel_size_mm",
-                f"grid of {dims.tolist()} voxels ({n / 1e6:.0f} M) is too large; "
-                "use larger voxels or a smaller region",
+                f"grid of {'x'.join(f'{d:.0f}' for d in dims_f)} voxels ({n_f / 1e6:.0f} M) is too large; "
+                "use larger voxels or a smaller region (or a smaller margin)",
             )
+        dims = dims_f.astype(np.int64)
         T = np.diag([voxel_size_mm] * 3 + [1.0])
         T[:3, 3] = lo
         shape = tuple(int(d) for d in dims)
@@ -203,16 +204,28 @@ class TsdfModel:
         if not path.is_file():
             raise InvalidInputError(path, "model file is missing")
         try:
-            with np.load(path, allow_pickle=False) as z:
+            loaded = np.load(path, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array
+                raise InvalidInputError(path, "not a model file: a single .npy array, not an .npz")
+            with loaded as z:
                 data = {k: z[k] for k in z.files}
         except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
+            if isinstance(exc, InvalidInputError):
+                raise
             raise InvalidInputError(
                 path, f"cannot read model (.npz without pickle): {exc}"
             ) from None
         fmt = str(data.get("format", ""))
         if fmt != MODEL_FORMAT:
             raise FormatVersionError(path, f"format is {fmt!r}, expected {MODEL_FORMAT!r}")
-        version = int(data["version"]) if "version" in data else None
+        version_field = data.get("version")
+        version = (
+            int(version_field)
+            if version_field is not None
+            and version_field.shape == ()
+            and version_field.dtype.kind in "iu"
+            else (None if version_field is None else version_field.tolist())
+        )
         if version != MODEL_VERSION:
             raise FormatVersionError(
                 path, f"model version {version!r}; this reader reads version {MODEL_VERSION}"
@@ -220,6 +233,14 @@ class TsdfModel:
         missing = {"tsdf", "weight", "T_world_from_voxel", "voxel_size_mm", "trunc_mm"} - set(data)
         if missing:
             raise InvalidInputError(path, f"model file lacks field(s) {sorted(missing)}")
+        for key in ("voxel_size_mm", "trunc_mm", "step"):
+            if key in data and (data[key].shape != () or data[key].dtype.kind not in "iuf"):
+                raise InvalidInputError(
+                    path, f"{key} must be a single number, got {data[key].dtype} {data[key].shape}"
+                )
+        step = data.get("step", np.int64(0))
+        if step.dtype.kind not in "iu" or int(step) < 0:
+            raise InvalidInputError(path, f"step must be an integer >= 0, got {step}")
         try:
             return cls(
                 tsdf=data["tsdf"],
@@ -228,7 +249,7 @@ class TsdfModel:
                 voxel_size_mm=float(data["voxel_size_mm"]),
                 trunc_mm=float(data["trunc_mm"]),
                 color=data.get("color"),
-                step=int(data.get("step", 0)),
+                step=int(step),
             )
         except InvalidInputError as exc:
             raise InvalidInputError(path, f"{exc.source}: {exc.problem}") from None

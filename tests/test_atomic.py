@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from chisel.atomic import atomic_dir, check_output_outside
+from chisel.atomic import atomic_dir, atomic_write_text, check_output_outside
 from chisel.errors import InvalidInputError
 
 
@@ -73,3 +73,11 @@ def test_atomic_dir_replaces_only_its_own_kind_of_folder(tmp_path: Path) -> None
     with atomic_dir(out, "sequence.json") as tmp:  # an earlier output: replaced
         (tmp / "sequence.json").write_text("2")
     assert (out / "sequence.json").read_text() == "2"
+
+
+def test_a_file_write_to_a_folder_or_an_empty_name_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(InvalidInputError, match="is a folder"):
+        atomic_write_text(tmp_path, "x")
+    with pytest.raises(InvalidInputError, match="not a file name"):
+        atomic_write_text("", "x")
+    assert list(tmp_path.iterdir()) == []

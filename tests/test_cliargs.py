@@ -105,3 +105,16 @@ def test_file_outputs_may_not_be_an_input(
         "would overwrite the input --sequence",
     )
     assert files["surface"].read_bytes() == b"not read"
+
+
+def test_number_options_refuse_nan_and_inf(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = ["update", "--model", str(files["model"]), "--sequence", str(files["seq"])]
+    base += ["--out", str(files["root"] / "u.npz")]
+    for option, value in [("--tracking-accuracy-mm", "nan"), ("--depth-noise-mm", "inf")]:
+        with pytest.raises(SystemExit) as exc:
+            main([*base, option, value])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert option in err and "expected a finite number" in err, err

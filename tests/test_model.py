@@ -85,6 +85,28 @@ def test_missing_field_and_bad_files(tmp_path: Path) -> None:
         TsdfModel.load(tmp_path / "pickle.npz")
 
 
+def test_fields_of_the_wrong_kind_are_refused(tmp_path: Path) -> None:
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    (tmp_path / "array.npy").rename(tmp_path / "array.npz")
+    with pytest.raises(InvalidInputError, match="not a model file"):
+        TsdfModel.load(tmp_path / "array.npz")
+    cases = [
+        ({"voxel_size_mm": np.array([0.5, 0.5])}, InvalidInputError, "single number"),
+        ({"step": np.array(-5)}, InvalidInputError, "step must be an integer >= 0"),
+        ({"step": np.array(1.7)}, InvalidInputError, "step must be an integer >= 0"),
+        ({"version": np.array("1")}, FormatVersionError, "model version '1'"),
+    ]
+    for i, (fields, error, message) in enumerate(cases):
+        _write_raw(tmp_path / f"m{i}.npz", **fields)
+        with pytest.raises(error, match=message):
+            TsdfModel.load(tmp_path / f"m{i}.npz")
+
+
+def test_a_box_too_large_for_int64_is_refused_not_overflowed() -> None:
+    with pytest.raises(InvalidInputError, match="too large"):
+        TsdfModel.empty([-1e9, -1e9, -1e9], [1e9, 1e9, 1e9], 0.5, 1.0)
+
+
 def test_failed_save_keeps_previous_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "m.npz"
     _model(False).save(path)

@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from chisel.cliargs import Output
+from chisel.cliargs import Output, finite_float
 from chisel.depth import (
     DEFAULT_CHECKPOINT,
     DepthNetConfig,
@@ -303,7 +303,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "--epochs", type=int, default=epochs, help=f"passes over the frames (default {epochs})"
         )
         q.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
-        q.add_argument("--lr", type=float, default=lr, help=f"peak learning rate (default {lr:g})")
+        q.add_argument(
+            "--lr", type=finite_float, default=lr, help=f"peak learning rate (default {lr:g})"
+        )
         q.add_argument(
             "--seed", type=int, default=0, help="seeds init, split, shuffling, augmentation"
         )
@@ -328,7 +330,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     training(t, epochs=30, lr=2e-3)
     t.add_argument(
         "--val-fraction",
-        type=float,
+        type=finite_float,
         default=0.15,
         help="fraction of phantom seeds held out for validation (default 0.15)",
     )
@@ -349,7 +351,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     t.add_argument(
         "--max-minutes",
-        type=float,
+        type=finite_float,
         default=None,
         help="stop after the epoch that passes this wall time (safety cap)",
     )

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from chisel.cliargs import Output
+from chisel.cliargs import Output, finite_float
 from chisel.errors import InvalidInputError
 from chisel.evaluate import (
     RoiBox,
@@ -219,7 +219,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument(
         "--roi", help="ROI box drawn in the 3D view: --roi=xmin,ymin,zmin,xmax,ymax,zmax (mm)"
     )
-    r.add_argument("--removed-threshold-mm", type=float, default=0.5, help="highlight distance, mm")
+    r.add_argument(
+        "--removed-threshold-mm", type=finite_float, default=0.5, help="highlight distance, mm"
+    )
     r.add_argument(
         "--max-faces", type=int, default=60_000, help="triangles per mesh after decimation"
     )

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from chisel.cliargs import Output
+from chisel.cliargs import Output, finite_float
 from chisel.importers import (
     FrameConfig,
     PoseConfig,
@@ -195,14 +195,19 @@ def _add_frame_parser(sub: argparse._SubParsersAction, kind: str) -> None:
     g.add_argument("--interp", choices=["nearest", "slerp"], default="nearest")
     g.add_argument(
         "--tolerance-s",
-        type=float,
+        type=finite_float,
         default=0.02,
         help="max frame-to-sample time, seconds (default 0.02)",
     )
     g.add_argument("--frame-times", help="CSV of frame times in seconds (last column)")
-    g.add_argument("--fps", type=float, help="frame rate for frame times (default: the video's)")
     g.add_argument(
-        "--time-offset-s", type=float, default=0.0, help="time of frame 0 on the pose clock, s"
+        "--fps", type=finite_float, help="frame rate for frame times (default: the video's)"
+    )
+    g.add_argument(
+        "--time-offset-s",
+        type=finite_float,
+        default=0.0,
+        help="time of frame 0 on the pose clock, s",
     )
     g.add_argument("--hand-eye", help="T_marker_from_cam, 4x4 (.npy or text)")
     g.add_argument("--world-from-tracker", help="T_world_from_tracker, 4x4 (.npy or text)")
@@ -219,7 +224,7 @@ def _add_frame_parser(sub: argparse._SubParsersAction, kind: str) -> None:
     )
     g.add_argument(
         "--alpha",
-        type=float,
+        type=finite_float,
         default=0.0,
         help="getOptimalNewCameraMatrix alpha in [0, 1] (default 0)",
     )
@@ -240,7 +245,7 @@ def _add_frame_parser(sub: argparse._SubParsersAction, kind: str) -> None:
     g.add_argument("--camera-mask", help="PNG mask on the raw grid (255 = inside the field stop)")
     g.add_argument(
         "--mask-margin-px",
-        type=float,
+        type=finite_float,
         default=2.0,
         help="shrink the field stop by this, px (default 2)",
     )
@@ -249,7 +254,10 @@ def _add_frame_parser(sub: argparse._SubParsersAction, kind: str) -> None:
     g.add_argument("--step", type=int, default=1, help="take every STEP-th frame")
     g.add_argument("--depth", help="folder of per-frame depth (.npy / 16-bit .png)")
     g.add_argument(
-        "--depth-scale-mm", type=float, default=1.0, help="mm per stored depth unit (default 1)"
+        "--depth-scale-mm",
+        type=finite_float,
+        default=1.0,
+        help="mm per stored depth unit (default 1)",
     )
     g.add_argument("--masks", help="folder of per-frame mask PNGs (tools, blood)")
     g.add_argument("--mask-invert", action="store_true", help="mask PNGs mark pixels to exclude")
@@ -277,7 +285,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--with-depth", action="store_true", help="also import depths/*.npy")
     p.add_argument(
-        "--depth-scale-mm", type=float, default=1.0, help="mm per depth unit (default 1)"
+        "--depth-scale-mm", type=finite_float, default=1.0, help="mm per depth unit (default 1)"
     )
     p.add_argument(
         "--pose-units", choices=["mm", "m"], default="mm", help="translation units (default mm)"

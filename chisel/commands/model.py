@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from chisel.atomic import atomic_path, atomic_write_text
-from chisel.cliargs import Output
+from chisel.cliargs import Output, finite_float
 from chisel.errors import InvalidInputError
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--iso-level",
-        type=float,
+        type=finite_float,
         default=None,
         help="iso-level (HU for intensity, default -480; default 0.5 for labels)",
     )
@@ -81,9 +81,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", required=True, type=Path, help="output model file (.npz)", action=Output
     )
-    p.add_argument("--voxel-size-mm", type=float, default=0.5, help="voxel edge, mm (0.5)")
-    p.add_argument("--trunc-mm", type=float, default=2.0, help="truncation distance, mm (2.0)")
-    p.add_argument("--margin-mm", type=float, default=3.0, help="margin around the data, mm")
+    p.add_argument("--voxel-size-mm", type=finite_float, default=0.5, help="voxel edge, mm (0.5)")
+    p.add_argument(
+        "--trunc-mm", type=finite_float, default=2.0, help="truncation distance, mm (2.0)"
+    )
+    p.add_argument("--margin-mm", type=finite_float, default=3.0, help="margin around the data, mm")
     p.add_argument("--color", action="store_true", help="fuse colour from the sequence's RGB")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_build)
@@ -124,11 +126,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ablation: no RANSAC/ICP, the estimate is only scaled to the model's render",
     )
     p.add_argument(
-        "--threshold-mm", type=float, default=1.0, help="change threshold M' - M_t, mm (1.0)"
+        "--threshold-mm", type=finite_float, default=1.0, help="change threshold M' - M_t, mm (1.0)"
     )
     p.add_argument(
         "--noise-k",
-        type=float,
+        type=finite_float,
         default=3.0,
         help="per frame, raise the threshold to this many robust standard deviations of the "
         "estimate's noise (3.0; 0 = the fixed threshold, as in the paper)",
@@ -142,13 +144,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--min-agreement",
-        type=float,
+        type=finite_float,
         default=0.8,
         help="... and at least this fraction of the frames that see it (0.8)",
     )
     p.add_argument(
         "--tracking-accuracy-mm",
-        type=float,
+        type=finite_float,
         default=3.0,
         help="the tracker's accuracy, hand-eye calibration included (3.0 mm): a step whose "
         "hand-eye correction moves the camera further is not registered (tracked poses, "
@@ -156,20 +158,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--tracking-accuracy-deg",
-        type=float,
+        type=finite_float,
         default=3.0,
         help="the same for the correction's rotation (3.0 deg)",
     )
     p.add_argument("--max-frames", type=int, default=None, help="use the first N frames only")
     p.add_argument(
         "--depth-noise-mm",
-        type=float,
+        type=finite_float,
         default=0.0,
         help="robustness study: add Gaussian noise of this std (mm at the depth's own "
         "scale) to every estimate",
     )
     p.add_argument("--depth-noise-seed", type=int, default=0, help="seed of --depth-noise-mm")
-    p.add_argument("--min-fitness", type=float, default=0.3, help="registration fitness floor")
+    p.add_argument(
+        "--min-fitness", type=finite_float, default=0.3, help="registration fitness floor"
+    )
     p.add_argument("--seed", type=int, default=0, help="RANSAC seed")
     p.add_argument(
         "--allow-unused-step",
