@@ -93,8 +93,15 @@ class Calibration:
             raise CameraError(self.source, exc.problem) from None
 
 
+def _numbers(values: object, what: str, source: str) -> np.ndarray:
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:  # a string or a nested mapping in the file
+        raise CameraError(source, f"{what} must be numbers: {exc}") from None
+
+
 def _dist5(values: np.ndarray, source: str) -> np.ndarray:
-    d = np.asarray(values, dtype=np.float64).ravel()
+    d = _numbers(values, "distortion coefficients", source).ravel()
     if d.size == 4:
         d = np.append(d, 0.0)
     elif d.size in (8, 12, 14):
@@ -115,7 +122,7 @@ def _dist5(values: np.ndarray, source: str) -> np.ndarray:
 
 
 def _matrix3(values: object, source: str) -> np.ndarray:
-    K = np.asarray(values, dtype=np.float64)
+    K = _numbers(values, "camera matrix", source)
     if K.size != 9:
         raise CameraError(source, f"camera matrix must have 9 entries, got shape {K.shape}")
     return K.reshape(3, 3)
@@ -151,7 +158,7 @@ def _read_filestorage(path: Path) -> Calibration | None:
     source = str(path)
     try:
         fs = cv2.FileStorage(source, cv2.FILE_STORAGE_READ)
-    except cv2.error:
+    except (cv2.error, SystemError):  # OpenCV raises SystemError on some unparsable files
         return None
     try:
         if not fs.isOpened():
@@ -208,8 +215,10 @@ def read_calibration(path: str | Path) -> Calibration:
         raise CameraError(source, "OpenCV cannot read this XML file or it has no camera_matrix")
     try:
         data = yaml.safe_load(path.read_text())
+    except UnicodeDecodeError:
+        raise CameraError(source, "not a text file (invalid UTF-8)") from None
     except yaml.YAMLError as exc:
-        raise CameraError(source, f"invalid YAML: {exc}") from None
+        raise CameraError(source, f"invalid YAML: {' '.join(str(exc).split())}") from None
     if not isinstance(data, dict):
         raise CameraError(source, "expected a YAML mapping with camera_matrix")
     return _from_mapping(data, source)

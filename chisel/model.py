@@ -238,6 +238,15 @@ class TsdfModel:
                 raise InvalidInputError(
                     path, f"{key} must be a single number, got {data[key].dtype} {data[key].shape}"
                 )
+        # Values, not only shapes: a NaN or out-of-range voxel would spread through fusion
+        # and meshing without an error.
+        tsdf, weight = data.get("tsdf"), data.get("weight")
+        if isinstance(tsdf, np.ndarray) and tsdf.dtype.kind == "f":
+            if not (np.all(np.isfinite(tsdf)) and np.abs(tsdf).max(initial=0) <= 1.0):
+                raise InvalidInputError(path, "tsdf must be finite and within [-1, 1]")
+        if isinstance(weight, np.ndarray) and weight.dtype.kind == "f":
+            if not (np.all(np.isfinite(weight)) and weight.min(initial=0) >= 0):
+                raise InvalidInputError(path, "weight must be finite and >= 0")
         step = data.get("step", np.int64(0))
         if step.dtype.kind not in "iu" or int(step) < 0:
             raise InvalidInputError(path, f"step must be an integer >= 0, got {step}")

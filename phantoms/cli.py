@@ -178,9 +178,9 @@ def _load_plan(path: Path):
                     shape=b.get("shape", "ellipsoid"),
                 )
             )
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:
             raise ParameterRangeError(
-                f"{path} bite {i}", f"expected center_mm and size_mm lists: {exc}"
+                f"{path} bite {i}", f"expected center_mm and size_mm lists of numbers: {exc}"
             ) from None
     return bites
 

@@ -118,3 +118,13 @@ def test_number_options_refuse_nan_and_inf(
         assert exc.value.code == 2
         err = capsys.readouterr().err
         assert option in err and "expected a finite number" in err, err
+
+
+def test_evaluate_refuses_a_negative_seed(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    refused(
+        ["evaluate", "--seed", "-1", "--out", str(files["root"] / "m.json")],
+        capsys,
+        "--seed: must be >= 0",
+    )

@@ -95,6 +95,9 @@ def test_fields_of_the_wrong_kind_are_refused(tmp_path: Path) -> None:
         ({"step": np.array(-5)}, InvalidInputError, "step must be an integer >= 0"),
         ({"step": np.array(1.7)}, InvalidInputError, "step must be an integer >= 0"),
         ({"version": np.array("1")}, FormatVersionError, "model version '1'"),
+        ({"tsdf": np.full((4, 4, 4), np.nan, np.float32)}, InvalidInputError, "tsdf must be"),
+        ({"tsdf": np.full((4, 4, 4), 2.0, np.float32)}, InvalidInputError, "within \\[-1, 1\\]"),
+        ({"weight": np.full((4, 4, 4), -1.0, np.float32)}, InvalidInputError, "weight must be"),
     ]
     for i, (fields, error, message) in enumerate(cases):
         _write_raw(tmp_path / f"m{i}.npz", **fields)

@@ -341,3 +341,24 @@ def test_generated_step_is_accepted_by_load_tissue(coarse_dir):
     tissue = load_tissue(coarse_dir / "meshes/step_02.ply")
     v, _ = arrays_from_manifold(tissue)
     assert len(v) > 1000
+
+
+def test_a_plan_with_text_for_a_number_is_one_line(tmp_path, capsys):
+    plan = tmp_path / "plan.json"
+    plan.write_text('[{"center_mm": [1, "a", 3], "size_mm": [2, 2, 2]}]')
+    rc = main(
+        [
+            "generate",
+            "--seed",
+            "0",
+            "--bites",
+            "1",
+            "--plan",
+            str(plan),
+            "--out",
+            str(tmp_path / "p"),
+        ]
+    )
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and "bite 0" in err and "lists of numbers" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "p").exists()

@@ -629,3 +629,15 @@ def test_import_killed_mid_write_keeps_the_previous_sequence(scene, tmp_path) ->
     # is left behind; it is safe to delete).
     assert subprocess.run(cmd, cwd=REPO, capture_output=True).returncode == 0
     assert len(Sequence(tmp_path / "seq")) == 240
+
+
+def test_calibration_that_is_binary_or_holds_text_is_one_camera_error(tmp_path: Path) -> None:
+    binary = tmp_path / "calib.yaml"
+    binary.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(CameraError, match="not a text file") as info:
+        read_calibration(binary)
+    assert info.value.source == str(binary)
+    text_k = tmp_path / "calib.json"
+    text_k.write_text('{"K": [[1, "a", 0], [0, 1, 0], [0, 0, 1]], "dist": [0, 0, 0, 0, 0]}')
+    with pytest.raises(CameraError, match="camera matrix must be numbers"):
+        read_calibration(text_k)

@@ -58,6 +58,8 @@ def _name_path_pairs(items: list[str] | None, option: str) -> dict[str, Path]:
 
 
 def _run_step(args: argparse.Namespace) -> int:
+    if args.seed < 0:
+        raise InvalidInputError("--seed", f"must be >= 0, got {args.seed}")
     missing = [
         opt
         for opt, val in (
