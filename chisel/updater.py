@@ -805,9 +805,9 @@ def _sequence_registration(
         for T, E, s in zip(poses, estimates, scales, strict=True)
         if s is not None
     ]
-    if not pts:
-        return np.eye(4), {"ok": False, "reason": "no frame overlaps the model render"}
-    src = np.concatenate(pts)
+    src = np.concatenate(pts) if pts else np.empty((0, 3))
+    if len(src) == 0:  # no frame, or every pixel masked out (tools, blood, a bad mask file)
+        return np.eye(4), {"ok": False, "reason": "no valid pixel overlaps the model render"}
     lo, hi = src.min(axis=0) - 5.0, src.max(axis=0) + 5.0
     tv, tn = renderer.surface_points(lo, hi)
     if len(tv) < 10:

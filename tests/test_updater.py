@@ -21,6 +21,7 @@ from chisel.change import ChangeConfig
 from chisel.depth_source import CallableDepth, GroundTruthDepth
 from chisel.errors import (
     CameraError,
+    ChiselError,
     DepthUnitsError,
     EmptyResultError,
     InvalidInputError,
@@ -279,6 +280,16 @@ def test_skipped_frames_are_reported_never_fused(scene: dict) -> None:
     assert kept.tsdf.tobytes() == model.tsdf.tobytes()
     assert kept.weight.tobytes() == model.weight.tobytes()
     assert kept.step == model.step + 1
+
+
+def test_frames_whose_masks_keep_no_pixel_fail_with_a_reason(scene: dict) -> None:
+    """Every pixel masked out (tools, blood, a wrong mask file): a ChiselError saying so,
+    not a numpy error from an empty point cloud."""
+    cam, model = scene["cam"], scene["model"]
+    fr = frames(scene["bitten"], cam, poses(3, seed=2))
+    masked = [replace(f, mask=np.zeros(cam.shape, bool)) for f in fr]
+    with pytest.raises(ChiselError):
+        update_step(model, cam, masked, GroundTruthDepth())
 
 
 def test_bad_input_raises_before_anything_is_fused(scene: dict) -> None:
