@@ -12,6 +12,7 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 from chisel.errors import InvalidInputError
 
@@ -75,20 +76,31 @@ def _umask() -> int:
     return umask
 
 
+def overlap(out: str | Path, inp: str | Path) -> Literal["replaces", "inside"] | None:
+    """How an output path meets an input path: ``"replaces"`` when it is the input or holds
+    it (writing it would destroy the input), ``"inside"`` when it lies inside the input,
+    else None. Paths are compared resolved (``..`` and links followed)."""
+    o, i = Path(out).resolve(), Path(inp).resolve()
+    if o == i or o in i.parents:
+        return "replaces"
+    if i in o.parents:
+        return "inside"
+    return None
+
+
 def check_output_outside(out: str | Path, *inputs: str | Path) -> None:
     """Raise :class:`InvalidInputError` if the output folder ``out`` overlaps an input.
 
     An atomic folder write replaces ``out`` whole: an ``out`` equal to an input folder or
     holding one would delete that input, and an ``out`` inside one would change it.
     """
-    o = Path(out).resolve()
     for inp in inputs:
-        i = Path(inp).resolve()
-        if o == i or o in i.parents:
+        how = overlap(out, inp)
+        if how == "replaces":
             raise InvalidInputError(
                 out, f"the output folder would replace the input {inp}; choose another output"
             )
-        if i in o.parents:
+        if how == "inside":
             raise InvalidInputError(
                 out, f"the output folder lies inside the input {inp}; choose one outside it"
             )

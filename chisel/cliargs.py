@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from chisel.atomic import overlap
 from chisel.errors import InvalidInputError
 
 
@@ -74,14 +75,13 @@ def check_outputs(args: argparse.Namespace) -> None:
         if dest in out_dests or dest.startswith("_") or callable(value):
             continue
         for inp in _paths(value):
-            i = inp.resolve()
             for d, o in outputs:
-                r = o.resolve()
-                if r == i or r in i.parents:
+                how = overlap(o, inp)
+                if how == "replaces":
                     raise InvalidInputError(
                         _option(d), f"{o} would overwrite the input {_option(dest)} {inp}"
                     )
-                if inp.is_dir() and i in r.parents:
+                if how == "inside" and inp.is_dir():
                     raise InvalidInputError(
                         _option(d),
                         f"{o} lies inside the input folder {_option(dest)} {inp}: "
