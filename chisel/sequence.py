@@ -101,7 +101,7 @@ def check_depth_mm(depth_mm: np.ndarray, source: str) -> np.ndarray:
     return d
 
 
-def _imwrite(path: str, img: np.ndarray) -> None:
+def imwrite(path: str, img: np.ndarray) -> None:
     """``cv2.imwrite`` that fails loudly: OpenCV returns False (disk full, unwritable
     folder) instead of raising, which would leave a frame silently missing."""
     if not cv2.imwrite(path, img):
@@ -193,13 +193,13 @@ class SequenceWriter:
                 raise InvalidInputError(
                     f"frame {i} rgb", f"expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}"
                 )
-            _imwrite(str(self._tmp / "rgb" / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            imwrite(str(self._tmp / "rgb" / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if self._present("depth", frame.depth_mm):
             self.camera.check_image(frame.depth_mm, f"frame {i} depth")
             np.save(self._tmp / "depth" / f"{name}.npy", depth_to_disk(frame.depth_mm))
         if self._present("mask", frame.mask):
             self.camera.check_image(frame.mask, f"frame {i} mask")
-            _imwrite(
+            imwrite(
                 str(self._tmp / "mask" / f"{name}.png"),
                 np.where(frame.mask, 255, 0).astype(np.uint8),
             )
@@ -229,7 +229,7 @@ class SequenceWriter:
             (tmp / "poses_true.txt").write_text(_poses_to_text(np.stack(self._true)))  # type: ignore[arg-type]
         if self.camera_mask is not None:
             self.camera.check_image(self.camera_mask, "camera_mask")
-            _imwrite(
+            imwrite(
                 str(tmp / "camera_mask.png"), np.where(self.camera_mask, 255, 0).astype(np.uint8)
             )
         header = {

@@ -21,18 +21,16 @@ Layout::
 
 from __future__ import annotations
 
-import errno
 import json
 import shutil
 from pathlib import Path
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from chisel.atomic import atomic_dir, check_output_outside
 from chisel.errors import InvalidInputError, OutputError
-from chisel.sequence import Sequence
+from chisel.sequence import Sequence, imwrite
 
 T_CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 """(4, 4) maps OpenGL camera-frame points to OpenCV camera-frame points (and back)."""
@@ -95,12 +93,12 @@ def export_nerfstudio(
             frame = {"file_path": f"images/{name}.png", "transform_matrix": T.tolist()}
             mask = seq.mask(i)
             if mask is not None:
-                if not cv2.imwrite(
-                    str(tmp / "masks" / f"{name}.png"), np.where(mask, 255, 0).astype(np.uint8)
-                ):  # OpenCV returns False instead of raising (disk full, unwritable folder)
-                    raise OutputError(
-                        out / "masks" / f"{name}.png", OSError(errno.EIO, "disk full?")
+                try:
+                    imwrite(
+                        str(tmp / "masks" / f"{name}.png"), np.where(mask, 255, 0).astype(np.uint8)
                     )
+                except OSError as exc:  # name the final file, not the temporary one
+                    raise OutputError(out / "masks" / f"{name}.png", exc) from exc
                 frame["mask_path"] = f"masks/{name}.png"
             if seq.has_depth:
                 seq.depth_mm(i)

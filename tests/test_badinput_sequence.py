@@ -18,7 +18,8 @@ import cv2
 import numpy as np
 import pytest
 
-from chisel.errors import CameraError, InvalidInputError, PoseError
+import chisel.sequence as seqmod
+from chisel.errors import CameraError, InvalidInputError, OutputError, PoseError
 from chisel.geometry import Camera, look_at
 from chisel.sequence import Frame, Sequence, write_sequence
 from sim.cli import main
@@ -330,3 +331,18 @@ def test_export_cli_bad_frame_is_one_line(
     assert rc == 1 and len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert f"{seq / 'rgb' / '000001.png'}: file is missing" in err
     assert not (tmp_path / "ns").exists()
+
+
+def test_export_mask_write_failure_names_the_mask_and_keeps_the_earlier_export(
+    seq: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "ns"
+    export_nerfstudio(seq, out)
+    before = tree(out)
+    # OpenCV reports a full disk by returning False, not by raising.
+    monkeypatch.setattr(seqmod.cv2, "imwrite", lambda *a, **k: False)
+    with pytest.raises(OutputError) as info:
+        export_nerfstudio(seq, out)
+    assert info.value.source == str(out / "masks" / "000000.png")
+    assert tree(out) == before
+    assert leftovers(tmp_path) == []
