@@ -218,14 +218,8 @@ class TsdfModel:
         fmt = str(data.get("format", ""))
         if fmt != MODEL_FORMAT:
             raise FormatVersionError(path, f"format is {fmt!r}, expected {MODEL_FORMAT!r}")
-        version_field = data.get("version")
-        version = (
-            int(version_field)
-            if version_field is not None
-            and version_field.shape == ()
-            and version_field.dtype.kind in "iu"
-            else (None if version_field is None else version_field.tolist())
-        )
+        # tolist(): a 0-d integer array gives an int; "1", [1] or 1.5 stay unequal to it.
+        version = data["version"].tolist() if "version" in data else None
         if version != MODEL_VERSION:
             raise FormatVersionError(
                 path, f"model version {version!r}; this reader reads version {MODEL_VERSION}"
@@ -239,14 +233,16 @@ class TsdfModel:
                     path, f"{key} must be a single number, got {data[key].dtype} {data[key].shape}"
                 )
         # Values, not only shapes: a NaN or out-of-range voxel would spread through fusion
-        # and meshing without an error.
-        tsdf, weight = data.get("tsdf"), data.get("weight")
-        if isinstance(tsdf, np.ndarray) and tsdf.dtype.kind == "f":
-            if not (np.all(np.isfinite(tsdf)) and np.abs(tsdf).max(initial=0) <= 1.0):
-                raise InvalidInputError(path, "tsdf must be finite and within [-1, 1]")
-        if isinstance(weight, np.ndarray) and weight.dtype.kind == "f":
-            if not (np.all(np.isfinite(weight)) and weight.min(initial=0) >= 0):
-                raise InvalidInputError(path, "weight must be finite and >= 0")
+        # and meshing without an error (other dtypes are refused by the constructor below).
+        tsdf, weight = data["tsdf"], data["weight"]
+        if tsdf.dtype.kind == "f" and not (
+            np.all(np.isfinite(tsdf)) and np.abs(tsdf).max(initial=0) <= 1.0
+        ):
+            raise InvalidInputError(path, "tsdf must be finite and within [-1, 1]")
+        if weight.dtype.kind == "f" and not (
+            np.all(np.isfinite(weight)) and weight.min(initial=0) >= 0
+        ):
+            raise InvalidInputError(path, "weight must be finite and >= 0")
         step = data.get("step", np.int64(0))
         if step.dtype.kind not in "iu" or int(step) < 0:
             raise InvalidInputError(path, f"step must be an integer >= 0, got {step}")
