@@ -323,9 +323,7 @@ def _header_camera(value: object, source: Path) -> Camera:
         raise
     except (TypeError, ValueError) as exc:  # K or dist that are not arrays of numbers
         raise CameraError(source, f"camera K (3x3) and dist (5) must be numbers: {exc}") from None
-    # Pixel centres sit at integer coordinates, so the image spans [-0.5, W - 0.5]; a
-    # principal point beyond that means K was made for another image size.
-    if not (-0.5 <= camera.cx <= camera.width - 0.5 and -0.5 <= camera.cy <= camera.height - 0.5):
+    if not camera.principal_point_in_image:
         raise CameraError(
             source,
             f"principal point ({camera.cx:g}, {camera.cy:g}) lies outside the "
@@ -358,6 +356,12 @@ class Sequence:
         for key in ("camera", "num_frames"):
             if key not in header:
                 raise InvalidInputError(header_path, f"required field {key!r} is missing")
+        # Absent in files from older tools, which wrote mm as well.
+        units = header.get("units", "mm")
+        if units != "mm":
+            raise InvalidInputError(
+                header_path, f"units is {units!r}; poses and depth must be in mm ('mm')"
+            )
         meta = header.get("meta", {})
         if not isinstance(meta, dict):
             raise InvalidInputError(header_path, f"meta must be an object, got {_json_type(meta)}")
@@ -392,7 +396,10 @@ class Sequence:
                 )
         self.camera_mask: np.ndarray | None = None
         if _header_flag(header, "has_camera_mask", header_path):
-            self.camera_mask = self._read_png(self.path / "camera_mask.png", gray=True) > 127
+            mask_path = self.path / "camera_mask.png"
+            self.camera_mask = self._read_png(mask_path, gray=True) > 127
+            if not self.camera_mask.any():
+                raise InvalidInputError(mask_path, "camera mask keeps no pixel (all black)")
 
     def __len__(self) -> int:
         return self.num_frames

@@ -221,15 +221,18 @@ def build_preop_model(
     rc = MeshRaycaster(surface.vertices, surface.faces)
     items = list(zip(P, rgb_list, mask_list, strict=True))
     it = progress(items) if progress is not None else items
-    seen = 0
+    seen = masked_out = 0
     for T, rgb, mask in it:
         depth = rc.render_depth(camera, T)
         if mask is not None:
+            masked_out += not mask.any()
             depth = np.where(mask, depth, np.nan).astype(np.float32)
         if np.isfinite(depth).any():
             seen += 1
             integrate(model, camera, T, depth, rgb=rgb)
     if seen == 0:
+        if masked_out == len(P):
+            raise EmptyResultError("every preoperative frame's mask keeps no pixel")
         raise EmptyResultError("the CT surface is not visible from any preoperative pose")
     return model
 

@@ -172,6 +172,12 @@ HEADER_CASES: list[tuple[str, Callable[[dict[str, Any]], object], type[Exception
         "has_rgb must be true or false, got 'false'",
     ),
     ("meta array", lambda h: h.update(meta=[1]), InvalidInputError, "meta must be an object"),
+    (
+        "units metres",
+        lambda h: h.update(units="m"),
+        InvalidInputError,
+        "units is 'm'; poses and depth must be in mm",
+    ),
 ]
 
 
@@ -221,6 +227,21 @@ def test_principal_point_on_the_image_edge_still_loads(seq: Path) -> None:
     header["camera"]["K"][1][2] = -0.5
     (seq / "sequence.json").write_text(json.dumps(header))
     assert Sequence(seq).camera.cx == CAM.width - 0.5
+
+
+def test_header_without_units_reads_as_mm(seq: Path) -> None:
+    header = json.loads((seq / "sequence.json").read_text())
+    assert header.pop("units") == "mm"  # what the writer stores
+    (seq / "sequence.json").write_text(json.dumps(header))
+    assert len(Sequence(seq)) == 3
+
+
+def test_all_black_camera_mask_is_named(seq: Path) -> None:
+    # It used to load, and `chisel build` then blamed the CT ("surface not visible").
+    cv2.imwrite(str(seq / "camera_mask.png"), np.zeros(CAM.shape, np.uint8))
+    with pytest.raises(InvalidInputError, match="camera mask keeps no pixel") as info:
+        Sequence(seq)
+    assert info.value.source == str(seq / "camera_mask.png")
 
 
 @pytest.mark.parametrize(

@@ -346,5 +346,9 @@ def test_build_input_checks(scene: dict) -> None:
     away[:, :3, :3] = np.diag([1.0, -1.0, -1.0])  # looking away from the anatomy
     with pytest.raises(EmptyResultError, match="not visible"):
         build_preop_model(scene["tissue"], cam, away)
+    # Masks that keep nothing are blamed, not the CT that every pose does see.
+    empty = [np.zeros(cam.shape, bool)] * len(P)
+    with pytest.raises(EmptyResultError, match="every preoperative frame's mask keeps no pixel"):
+        build_preop_model(scene["tissue"], cam, P, masks=empty)
     with pytest.raises(InvalidInputError, match="trunc_mm"):
         BuildConfig(voxel_size_mm=1.0, trunc_mm=0.5)
