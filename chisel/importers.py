@@ -664,6 +664,12 @@ def _camera_mask_raw(
         )
     if circle is None:
         return None, None
+    if cfg.mask_margin_px >= circle.r:
+        raise InvalidInputError(
+            "mask_margin_px",
+            f"{cfg.mask_margin_px:g} px is not less than the field stop's radius "
+            f"{circle.r:.1f} px: the camera mask would keep no pixel",
+        )
     return circle_mask(raw.shape, circle, cfg.mask_margin_px), circle
 
 
@@ -727,7 +733,12 @@ def import_frames(
                     f"index matching needs one pose per frame",
                 )
             T = poses[i]
-            return (T, "") if np.isfinite(T).all() else (None, "pose is NaN (tracking lost)")
+            if np.isfinite(T).all():
+                return T, ""
+            # NaN is how trackers mark a lost pose; inf is a broken file, named as such
+            # (read from the file's row: the world transform turned both into NaN).
+            lost = np.isnan(track.poses[i]).any()
+            return None, "pose is NaN (tracking lost)" if lost else "pose is inf"
         if frame_times is not None:
             if i >= len(frame_times):
                 raise InvalidInputError(

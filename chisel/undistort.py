@@ -149,6 +149,8 @@ def circle_mask(shape: tuple[int, int], circle: Circle, margin_px: float = 0.0) 
     """(H, W) bool: pixel centres within ``circle.r - margin_px`` of the centre."""
     v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
     r = circle.r - margin_px
+    if r < 0:  # r * r below would turn a margin wider than the circle into a circle
+        return np.zeros(shape, dtype=bool)
     return (u - circle.cx) ** 2 + (v - circle.cy) ** 2 <= r * r
 
 

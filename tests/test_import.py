@@ -24,7 +24,7 @@ from test_import_scene import (
 
 from chisel.calibration import read_calibration, write_opencv_calibration
 from chisel.cli import main as chisel_main
-from chisel.errors import PoseError
+from chisel.errors import InvalidInputError, PoseError
 from chisel.geometry import Camera, make_transform, rotation_angle_deg
 from chisel.importers import (
     FrameConfig,
@@ -316,6 +316,7 @@ def test_depth_png_scale_masks_and_frame_range(scene, tmp_path) -> None:
 def test_drop_unposed_frames(scene, tmp_path) -> None:
     P = scene.poses.copy()
     P[2] = np.nan  # tracking lost
+    P[4, 0, 3] = np.inf  # a broken row: named as what it is, not as lost tracking
     write_matrix_rows(tmp_path / "p.txt", P)
     write_images(tmp_path / "rgb", scene.raw_rgb)
     write_opencv_calibration(tmp_path / "c.yaml", RAW_CAMERA)
@@ -328,9 +329,28 @@ def test_drop_unposed_frames(scene, tmp_path) -> None:
         frame_cfg=FrameConfig(field_stop="none"),
     )
     seq = Sequence(tmp_path / "seq")
-    assert report.dropped == [(2, "pose is NaN (tracking lost)")]
-    assert seq.meta["source_frame_index"] == [0, 1, 3, 4, 5]
-    np.testing.assert_array_equal(seq.poses, scene.poses[[0, 1, 3, 4, 5]])
+    assert report.dropped == [(2, "pose is NaN (tracking lost)"), (4, "pose is inf")]
+    assert seq.meta["source_frame_index"] == [0, 1, 3, 5]
+    np.testing.assert_array_equal(seq.poses, scene.poses[[0, 1, 3, 5]])
+
+
+def test_mask_margin_wider_than_the_field_stop_is_refused(scene, tmp_path) -> None:
+    # A margin past the radius used to give a mask of radius |r - margin| (r * r > 0).
+    write_matrix_rows(tmp_path / "p.txt", scene.poses)
+    write_images(tmp_path / "rgb", scene.raw_rgb)
+    write_opencv_calibration(tmp_path / "c.yaml", RAW_CAMERA)
+    margin = FIELD_STOP.r + 5.0
+    with pytest.raises(InvalidInputError, match="not less than the field stop's radius") as info:
+        import_images(
+            tmp_path / "rgb",
+            tmp_path / "p.txt",
+            tmp_path / "c.yaml",
+            tmp_path / "seq",
+            frame_cfg=FrameConfig(field_stop_circle=FIELD_STOP, mask_margin_px=margin),
+        )
+    assert info.value.source == "mask_margin_px"
+    assert not (tmp_path / "seq").exists()
+    assert not circle_mask(RAW_CAMERA.shape, FIELD_STOP, margin).any()
 
 
 def _write_reference_part(base, scene, idx, mask, with_depth):
