@@ -190,6 +190,12 @@ class Camera:
         return (int(self.height), int(self.width))
 
     @property
+    def principal_point_in_image(self) -> bool:
+        """Whether (cx, cy) lies on the image, [-0.5, W - 0.5] x [-0.5, H - 0.5] (pixel
+        centres sit at integer coordinates); outside, K was made for another image size."""
+        return bool(-0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5)
+
+    @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0.0))
 

@@ -228,15 +228,14 @@ class CameraConfig:
         if self.K is not None:
             K = np.asarray(self.K, dtype=float)
             _check(K.shape == (3, 3), "camera.K", f"expected a 3x3 matrix, got shape {K.shape}")
-            cx, cy = K[0, 2], K[1, 2]
-            # A principal point outside the image means K was made for another image size.
-            _check(
-                0.0 <= cx <= self.width - 1 and 0.0 <= cy <= self.height - 1,
-                "camera.K",
-                f"principal point ({cx:g}, {cy:g}) lies outside the {self.width}x{self.height} "
-                f"image: the intrinsics do not match the image size",
-            )
-        self.camera()  # validates K and dist through chisel.geometry.Camera
+        camera = self.camera()  # validates K and dist through chisel.geometry.Camera
+        # The bound a sequence.json is read with, so that every render can be read back.
+        _check(
+            camera.principal_point_in_image,
+            "camera.K" if self.K is not None else "camera.principal_offset_px",
+            f"principal point ({camera.cx:g}, {camera.cy:g}) lies outside the "
+            f"{self.width}x{self.height} image: the intrinsics do not match the image size",
+        )
 
     def camera(self) -> Camera:
         """The :class:`chisel.geometry.Camera` this configuration describes."""

@@ -75,7 +75,23 @@ BAD_VALUES: list[tuple[dict[str, Any], str, str]] = [
     ({"variant": "gpu"}, "variant", "expected one of"),
     ({"paths": {"clearance_mm": 0.001}}, "paths.clearance_mm", "must be >= 0.1 mm"),
     ({"camera": 3}, "camera", "expected a mapping"),
+    (
+        {"camera": {"K": [[200, 0, 400], [0, 200, 128], [0, 0, 1]]}},
+        "camera.K",
+        "intrinsics do not match the image size",
+    ),
+    (
+        {"camera": {"principal_offset_px": [0, 200]}},
+        "camera.principal_offset_px",
+        "intrinsics do not match the image size",
+    ),
 ]
+
+
+def test_principal_point_bound_is_the_one_sequences_are_read_with() -> None:
+    # On the image's edge (-0.5 .. W - 0.5) loads in both; it was [0, W - 1] here before.
+    cfg = config_from_dict({"camera": {"K": [[200, 0, 319.5], [0, 200, -0.5], [0, 0, 1]]}})
+    assert cfg.camera.camera().principal_point_in_image
 
 
 @pytest.mark.parametrize(("data", "key", "problem"), BAD_VALUES)
