@@ -12,16 +12,27 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from chisel.atomic import overlap
 from chisel.errors import InvalidInputError
 
+Sidecar = Callable[[argparse.Namespace], Path | None]
+
 
 class Output(argparse.Action):
-    """``add_argument(..., action=Output)``: store the value and record it as an output."""
+    """``add_argument(..., action=Output)``: store the value and record it as an output.
+
+    ``sidecar`` names a second file the command writes beside this output (a checkpoint's
+    ``.json``, an update's default report), as a function of the parsed arguments; it is
+    checked like the output itself.
+    """
+
+    def __init__(self, *args: Any, sidecar: Sidecar | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.sidecar = sidecar
 
     def __call__(
         self,
@@ -32,6 +43,8 @@ class Output(argparse.Action):
     ) -> None:
         setattr(namespace, self.dest, values)
         namespace.__dict__.setdefault("_outputs", []).append(self.dest)
+        if self.sidecar is not None:
+            namespace.__dict__.setdefault("_sidecars", {})[self.dest] = self.sidecar
 
 
 def _option(dest: str) -> str:
@@ -64,26 +77,32 @@ def check_outputs(args: argparse.Namespace) -> None:
     """Raise :class:`InvalidInputError` (naming the option) if an output would overwrite an
     input or another output of the same command line."""
     out_dests = list(dict.fromkeys(getattr(args, "_outputs", [])))
-    outputs = [(d, Path(getattr(args, d))) for d in out_dests if getattr(args, d) is not None]
-    for i, (da, a) in enumerate(outputs):
-        for db, b in outputs[i + 1 :]:
+    outputs = [
+        (_option(d), Path(getattr(args, d))) for d in out_dests if getattr(args, d) is not None
+    ]
+    for dest, sidecar in getattr(args, "_sidecars", {}).items():
+        extra = sidecar(args)
+        if extra is not None:
+            outputs.append((f"{_option(dest)} sidecar", Path(extra)))
+    for i, (la, a) in enumerate(outputs):
+        for lb, b in outputs[i + 1 :]:
             if a.resolve() == b.resolve():
                 raise InvalidInputError(
-                    _option(db), f"{b} is also {_option(da)}: one output would overwrite the other"
+                    lb, f"{b} is also {la}: one output would overwrite the other"
                 )
     for dest, value in vars(args).items():
         if dest in out_dests or dest.startswith("_") or callable(value):
             continue
         for inp in _paths(value):
-            for d, o in outputs:
+            for label, o in outputs:
                 how = overlap(o, inp)
                 if how == "replaces":
                     raise InvalidInputError(
-                        _option(d), f"{o} would overwrite the input {_option(dest)} {inp}"
+                        label, f"{o} would overwrite the input {_option(dest)} {inp}"
                     )
                 if how == "inside" and inp.is_dir():
                     raise InvalidInputError(
-                        _option(d),
+                        label,
                         f"{o} lies inside the input folder {_option(dest)} {inp}: "
                         "write outputs outside the inputs",
                     )

@@ -107,6 +107,42 @@ def test_file_outputs_may_not_be_an_input(
     assert files["surface"].read_bytes() == b"not read"
 
 
+def test_sidecar_outputs_are_checked_too(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    # update writes OUT.json when no --report is given; a checkpoint writes a .json beside it.
+    model, seq, root = str(files["model"]), str(files["seq"]), files["root"]
+    metrics = root / "u.json"
+    metrics.write_text("{}")
+    base = ["update", "--model", model, "--sequence", seq, "--out", str(root / "u.npz")]
+    refused([*base, "--depth-source", f"sequence:{metrics}"], capsys, "--out sidecar", str(metrics))
+    refused(
+        [*base, "--masks", str(root / "u.json")], capsys, "one output would overwrite the other"
+    )
+    # With --report there is no default report: the check passes, reading the model fails.
+    refused(
+        [*base, "--report", str(root / "r.json"), "--masks", str(root / "u.json")],
+        capsys,
+        "cannot read model",
+    )
+    data = root / "data.json"
+    data.write_text("{}")
+    refused(
+        ["depth", "train", "--data", str(data), "--out", str(root / "data.pt")],
+        capsys,
+        "--out sidecar",
+        "would overwrite the input --data",
+    )
+    refused(
+        ["depth", "finetune", "--checkpoint", str(metrics), "--sequence", seq]
+        + ["--out", str(root / "u.pt")],
+        capsys,
+        "--out sidecar",
+        "would overwrite the input --checkpoint",
+    )
+    assert metrics.read_text() == data.read_text() == "{}"
+
+
 def test_number_options_refuse_nan_and_inf(
     files: dict[str, Path], capsys: pytest.CaptureFixture[str]
 ) -> None:

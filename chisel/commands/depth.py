@@ -32,6 +32,7 @@ from chisel.depth import (
     split_by_group,
     train,
 )
+from chisel.depth.checkpoint import sidecar_path
 from chisel.depth.data import AugmentConfig, SequenceRef
 from chisel.sequence import Sequence
 
@@ -49,6 +50,10 @@ Monocular depth network (relative z-depth from one RGB frame; the updater solves
   export    TorchScript (.pt) or ONNX (.onnx, needs the onnx package): uint8
             (B, H, W, 3) RGB -> (B, H, W) float32 relative depth
 """
+
+
+def _checkpoint_sidecar(args: argparse.Namespace) -> Path:
+    return sidecar_path(args.out)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -326,6 +331,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         required=True,
         help="checkpoint to write (.pt; a .json sidecar beside it)",
         action=Output,
+        sidecar=_checkpoint_sidecar,
     )
     training(t, epochs=30, lr=2e-3)
     t.add_argument(
@@ -366,7 +372,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="preoperative sequence folder(s) with RGB and depth (CT surface renders)",
     )
     f.add_argument(
-        "--out", required=True, help="fine-tuned checkpoint to write (.pt)", action=Output
+        "--out",
+        required=True,
+        help="fine-tuned checkpoint to write (.pt; a .json sidecar beside it)",
+        action=Output,
+        sidecar=_checkpoint_sidecar,
     )
     training(f, epochs=3, lr=1e-4)
     f.set_defaults(func=_cmd_finetune)

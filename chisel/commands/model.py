@@ -102,7 +102,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, type=Path, help="model of the previous step")
     p.add_argument("--sequence", required=True, type=Path, help="sequence of this step")
     p.add_argument(
-        "--out", required=True, type=Path, help="updated model file (.npz)", action=Output
+        "--out",
+        required=True,
+        type=Path,
+        help="updated model file (.npz)",
+        action=Output,
+        sidecar=lambda a: None if a.report is not None else a.out.with_suffix(".json"),
     )
     p.add_argument(
         "--report", type=Path, default=None, help="JSON report (default OUT.json)", action=Output

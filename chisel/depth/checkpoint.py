@@ -36,6 +36,11 @@ def _json_able(info: dict[str, Any], source: str) -> dict[str, Any]:
         raise InvalidInputError(source, f"checkpoint info must be JSON-able: {exc}") from None
 
 
+def sidecar_path(path: str | Path) -> Path:
+    """The ``.json`` that :func:`save_checkpoint` writes beside the checkpoint ``path``."""
+    return Path(path).with_suffix(".json")
+
+
 def save_checkpoint(path: str | Path, net: DepthNet, info: dict[str, Any] | None = None) -> Path:
     """Write ``net`` to ``path`` (atomically) and a ``.json`` sidecar; returns ``path``.
 
@@ -62,7 +67,7 @@ def save_checkpoint(path: str | Path, net: DepthNet, info: dict[str, Any] | None
         "config": net.config.to_dict(),
         "info": info,
     }
-    atomic_write_text(path.with_suffix(".json"), json.dumps(sidecar, indent=2) + "\n")
+    atomic_write_text(sidecar_path(path), json.dumps(sidecar, indent=2) + "\n")
     return path
 
 
