@@ -46,7 +46,14 @@ from chisel.calibration import Calibration, read_calibration
 from chisel.errors import CameraError, ChiselError, InvalidInputError, OutputError, PoseError
 from chisel.geometry import Camera, check_rigid
 from chisel.sequence import Frame, SequenceWriter, check_depth_mm
-from chisel.undistort import Circle, Undistortion, circle_mask, fit_field_stop, make_undistortion
+from chisel.undistort import (
+    Circle,
+    Undistortion,
+    check_lens_model,
+    circle_mask,
+    fit_field_stop,
+    make_undistortion,
+)
 
 log = logging.getLogger(__name__)
 
@@ -773,6 +780,7 @@ def import_frames(
     mask_raw, circle = _camera_mask_raw(
         source, raw, frame_cfg, None if camera_mask_path is None else Path(camera_mask_path)
     )
+    check_lens_model(raw, mask_raw, calib.source)
     und: Undistortion | None = None
     camera = raw
     camera_mask = mask_raw

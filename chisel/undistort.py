@@ -27,6 +27,60 @@ NO_FIELD_STOP_FRACTION = 0.97
 border to fit: the frames are taken to have no field stop."""
 
 
+MAX_RADIAL_SCALE = 10.0
+"""Largest factor by which a plausible lens model stretches (or shrinks) image radii."""
+
+
+def check_lens_model(camera: Camera, used: np.ndarray | None, source: str) -> None:
+    """Refuse a distortion model that folds over, or is implausible, where the image is used.
+
+    OpenCV's radial model ``r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6)`` (normalised radii) is
+    fitted to the part of the image a calibration saw; beyond it the polynomial may turn
+    back, and there a pixel has two rays and undistortion silently returns one of them.
+    Checked out to the farthest ``used`` pixel (the field stop; all pixels when None),
+    radial terms only: the tangential ones shift points, they do not fold the image.
+
+    camera : the raw camera. used : (H, W) bool or None. source : named in the error.
+    Raises :class:`CameraError` on a fold or a radius scaled by more than
+    :data:`MAX_RADIAL_SCALE` (coefficients for another normalisation, say).
+    """
+    if not camera.has_distortion:
+        return
+    k1, k2, _, _, k3 = (float(k) for k in camera.dist)
+    u, v = camera.pixel_grid()
+    if used is not None:
+        u, v = u[used], v[used]
+    if u.size == 0:
+        return
+    rd_used = float(np.hypot((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy).max())
+    f_px = 0.5 * (camera.fx + camera.fy)
+    # Undistorted radius = tan(angle off the axis): 0 .. 1e3 (89.94 degrees).
+    r = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 20001)])
+    r2 = r * r
+    rd = r * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
+    slope = 1.0 + r2 * (3.0 * k1 + r2 * (5.0 * k2 + r2 * 7.0 * k3))
+    turn = np.flatnonzero(slope <= 0.0)
+    end = int(turn[0]) if len(turn) else len(r)
+    coeffs = f"k1, k2, k3 = {k1:g}, {k2:g}, {k3:g}"
+    if rd[:end].max() < rd_used:
+        raise CameraError(
+            source,
+            f"the distortion model ({coeffs}) turns back {rd[:end].max() * f_px:.0f} px from "
+            f"the principal point, inside the used image (out to {rd_used * f_px:.0f} px): "
+            "pixels there have no single ray; calibrate over the whole field of view, or "
+            "give the field stop so that only its pixels are used",
+        )
+    inside = slice(1, int(np.searchsorted(rd[:end], rd_used)) + 1)
+    scale = rd[inside] / r[inside]
+    worst = float(scale.max() if scale.max() > 1.0 / scale.min() else scale.min())
+    if not 1.0 / MAX_RADIAL_SCALE <= worst <= MAX_RADIAL_SCALE:
+        raise CameraError(
+            source,
+            f"the distortion model ({coeffs}) scales image radii by {worst:.3g} inside the "
+            f"used image: not a plausible lens (coefficients for another normalisation?)",
+        )
+
+
 @dataclass(frozen=True)
 class Undistortion:
     """A fixed remap from a distorted camera's raw images to a pinhole camera's images."""

@@ -21,7 +21,9 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 
+from chisel.errors import CameraError
 from chisel.geometry import Camera
+from chisel.undistort import check_lens_model
 from sim.errors import ConfigError
 
 Range = tuple[float, float]
@@ -236,6 +238,10 @@ class CameraConfig:
             f"principal point ({camera.cx:g}, {camera.cy:g}) lies outside the "
             f"{self.width}x{self.height} image: the intrinsics do not match the image size",
         )
+        try:  # depth is rendered at every pixel, so the lens must hold up to the corners
+            check_lens_model(camera, None, "camera.dist")
+        except CameraError as exc:
+            raise ConfigError("camera.dist", exc.problem) from None
 
     def camera(self) -> Camera:
         """The :class:`chisel.geometry.Camera` this configuration describes."""

@@ -80,6 +80,8 @@ BAD_VALUES: list[tuple[dict[str, Any], str, str]] = [
         "camera.K",
         "intrinsics do not match the image size",
     ),
+    ({"camera": {"dist": [-0.5, 0, 0, 0, 0]}}, "camera.dist", "turns back"),
+    ({"camera": {"dist": [1e6, 0, 0, 0, 0]}}, "camera.dist", "scales image radii"),
     (
         {"camera": {"principal_offset_px": [0, 200]}},
         "camera.principal_offset_px",

@@ -320,6 +320,24 @@ def test_unsupported_distortion_model(tmp_path) -> None:
         read_calibration(tmp_path / "c.json")
 
 
+def test_distortion_that_folds_over_or_is_absurd_is_refused(data) -> None:
+    # k1 alone, barrel: the polynomial turns back inside the frame; a field stop that
+    # keeps the frames' centre only makes the same lens usable.
+    folds = Camera.from_fov(96, 80, 100.0, dist=np.array([-0.5, 0.0, 0.0, 0.0, 0.0]))
+    write_opencv_calibration(data / "calib.yaml", folds)
+    with pytest.raises(CameraError, match=r"calib\.yaml: the distortion model .* turns back"):
+        run_images(data)
+    assert not (data / "seq").exists()
+    small_stop = FrameConfig(field_stop_circle=FIELD_STOP.__class__(47.5, 39.5, 20.0))
+    run_images(data, frame_cfg=small_stop)
+    assert Sequence(data / "seq").camera_mask is not None
+    # A coefficient a million times too large (another normalisation) was accepted.
+    absurd = Camera.from_fov(96, 80, 100.0, dist=np.array([1e6, 0.0, 0.0, 0.0, 0.0]))
+    write_opencv_calibration(data / "calib.yaml", absurd)
+    with pytest.raises(CameraError, match=r"calib\.yaml: .* scales image radii by"):
+        run_images(data)
+
+
 def test_calibration_without_camera_matrix(tmp_path) -> None:
     (tmp_path / "c.yaml").write_text("foo: 1\n")
     with pytest.raises(CameraError, match=r"c\.yaml: no camera matrix"):
