@@ -9,8 +9,10 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import signal
 import tempfile
-from collections.abc import Iterator
+import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -30,13 +32,8 @@ def check_writable_parent(path: Path) -> None:
         raise InvalidInputError(path, f"output folder {parent} is not writable")
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
-    """Yield a temporary file path beside ``path``; on success move it over ``path``.
-
-    On an exception the temporary file is removed and ``path`` is left as it was.
-    """
-    path = Path(path)
+def _temp_beside(path: Path, suffix: str) -> Path:
+    """A new empty temporary file beside ``path`` (same folder, so a rename is atomic)."""
     if path.name in ("", ".", ".."):
         raise InvalidInputError(path, "not a file name")
     if path.is_dir():
@@ -46,17 +43,77 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
         prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent
     )
     os.close(fd)
-    tmp_path = Path(tmp)
     # mkstemp creates 0600; give the final file the permissions a plain open() would.
-    os.chmod(tmp_path, 0o666 & ~_umask())
+    os.chmod(tmp, 0o666 & ~_umask())
+    return Path(tmp)
+
+
+def _fsync(path: Path) -> None:
+    with open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary file path beside ``path``; on success move it over ``path``.
+
+    On an exception the temporary file is removed and ``path`` is left as it was.
+    """
+    with atomic_paths(path, suffixes=(suffix,)) as (tmp,):
+        yield tmp
+
+
+@contextlib.contextmanager
+def deferred_signals() -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM until the block is done, then deliver them.
+
+    Python runs signal handlers in the main thread between bytecodes, so a handler swap
+    is what holds them (blocking the signal in one thread would not: another thread may
+    take it). Elsewhere than in the main thread this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {
+        sig: signal.signal(sig, lambda signum, _frame: caught.append(signum)) for sig in held
+    }
     try:
-        yield tmp_path
-        with open(tmp_path, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp_path, path)
+        yield
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(caught):
+            signal.raise_signal(sig)
+
+
+@contextlib.contextmanager
+def atomic_paths(*paths: str | Path, suffixes: Sequence[str] = ()) -> Iterator[list[Path]]:
+    """Yield a temporary path beside each of ``paths``; on success move them all into place.
+
+    The moves happen together at the end, with Ctrl-C and SIGTERM held
+    (:func:`deferred_signals`): the outputs are then all new or, after an exception or
+    an interrupt before the moves, all as they were. Only a SIGKILL or a power cut
+    between two renames can leave a mix. ``suffixes`` (default: each path's own) give
+    the temporary names' endings, for writers that look at them (``np.savez``).
+    """
+    finals = [Path(p) for p in paths]
+    ends = (list(suffixes) + [""] * len(finals))[: len(finals)]
+    temps: list[Path] = []
+    try:
+        for final, end in zip(finals, ends, strict=True):
+            temps.append(_temp_beside(final, end))
+        yield temps
+        for tmp in temps:
+            _fsync(tmp)
+        with deferred_signals():
+            for tmp, final in zip(temps, finals, strict=True):
+                os.replace(tmp, final)
+    finally:
+        for tmp in temps:
+            if tmp.exists():
+                tmp.unlink()
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

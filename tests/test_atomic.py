@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import os
+import signal
 import stat
 from pathlib import Path
 
 import pytest
 
-from chisel.atomic import atomic_dir, atomic_write_text, check_output_outside
+from chisel.atomic import atomic_dir, atomic_paths, atomic_write_text, check_output_outside
 from chisel.errors import InvalidInputError
 
 
@@ -81,3 +82,40 @@ def test_a_file_write_to_a_folder_or_an_empty_name_is_refused(tmp_path: Path) ->
     with pytest.raises(InvalidInputError, match="not a file name"):
         atomic_write_text("", "x")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_paths_move_together_and_hold_ctrl_c_until_done(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    a, b = tmp_path / "report.json", tmp_path / "model.npz"
+    a.write_text("old report")
+    b.write_text("old model")
+    # An error while staging: both stay as they were, no temporary file is left.
+    with pytest.raises(RuntimeError):
+        with atomic_paths(a, b) as (ta, tb):
+            ta.write_text("new report")
+            raise RuntimeError("fusion failed")
+    assert (a.read_text(), b.read_text()) == ("old report", "old model")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.npz", "report.json"]
+    # Ctrl-C between the two moves is delivered after both, never between them.
+    real_replace, moved = os.replace, []
+
+    def replace_then_interrupt(src: object, dst: object) -> None:
+        real_replace(src, dst)  # type: ignore[arg-type]
+        moved.append(Path(str(dst)).name)
+        if len(moved) == 1:
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(os, "replace", replace_then_interrupt)
+    # Python's own Ctrl-C handler, whatever the test runner's worker installed.
+    runner_handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_paths(a, b) as (ta, tb):
+                ta.write_text("new report")
+                tb.write_text("new model")
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, runner_handler)
+    assert moved == ["report.json", "model.npz"]
+    assert (a.read_text(), b.read_text()) == ("new report", "new model")

@@ -41,6 +41,15 @@ if point == "integrate":  # the 2nd frame's fusion of the step
             time.sleep(300)
         return real(*a, **k)
     U.integrate = hooked
+elif point.startswith("sigint:"):  # Ctrl-C right after the move of one output
+    import signal
+    real_replace, name = os.replace, point.split(":", 1)[1]
+    def hooked_replace(src, dst):
+        real_replace(src, dst)
+        if str(dst).endswith(name):
+            marker.write_text(point)
+            os.kill(os.getpid(), signal.SIGINT)
+    os.replace = hooked_replace
 else:  # the final rename of the model file: its bytes are in the temporary file
     real_replace = os.replace
     def hooked_replace(src, dst):
@@ -135,3 +144,27 @@ def test_update_killed_keeps_models_and_resumes(step_data, tmp_path, point) -> N
     # Leftovers of the killed run are only hidden temporary files, never the real names.
     names = {p.name for p in tmp_path.iterdir()}
     assert names - {"m1.npz", "m1.json", "marker"} == {n for n in names if n.startswith(".")}
+
+
+def test_ctrl_c_while_the_outputs_move_lands_after_all_of_them(step_data, tmp_path) -> None:
+    # The report moves first and the model last; Ctrl-C between them used to leave the
+    # new report beside the step's earlier model.
+    d = step_data
+    (tmp_path / "m1.npz").write_bytes(b"previous result of this step")
+    (tmp_path / "m1.json").write_text("previous report")
+    argv = ["update", "--model", str(d / "m0.npz"), "--sequence", str(d / "step")]
+    argv += ["--out", str(tmp_path / "m1.npz"), "--no-registration", "--no-progress"]
+    marker = tmp_path / "marker"
+    done = subprocess.run(
+        [sys.executable, "-c", HOOK, str(marker), "sigint:m1.json", *argv],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert marker.exists(), done.stderr
+    assert done.returncode == 130, done.stderr  # the interrupt is still reported
+    assert TsdfModel.load(tmp_path / "m1.npz").step == 1
+    report = json.loads((tmp_path / "m1.json").read_text())
+    assert report["step"] == 1
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]

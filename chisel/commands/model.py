@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chisel.atomic import atomic_path, atomic_write_text
+from chisel.atomic import atomic_path, atomic_paths
 from chisel.cliargs import Output, finite_float
 from chisel.errors import InvalidInputError
 
@@ -342,19 +342,24 @@ def _cmd_update(args: argparse.Namespace) -> int:
             "frames_considered": n,
         }
     )
-    # Outputs: masks and report first, the model last, each atomic: the model file of
-    # this step exists only when everything else was written.
-    if args.masks is not None:
-        idx = np.array([f.index for f in report.frames], dtype=np.int64)
-        shape = seq.camera.shape
-        masks = np.stack(
-            [f.mask if f.mask is not None else np.zeros(shape, bool) for f in report.frames]
-        )
-        used = np.array([f.used for f in report.frames], dtype=bool)
-        with atomic_path(args.masks, suffix=".npz") as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, frame_index=idx, masks=masks, used=used)
-    atomic_write_text(out_report, json.dumps(rep, indent=2) + "\n")
-    new_model.save(args.out)
+    # The outputs are staged, then moved into place together with Ctrl-C held: after a
+    # failure or an interrupt they are all new or all as they were. The model moves last,
+    # so even a SIGKILL between two moves leaves no new model without its report.
+    masks_out = [] if args.masks is None else [args.masks]
+    finals = [out_report, *masks_out, args.out]
+    suffixes = [".json", *(".npz" for _ in masks_out), ".npz"]
+    with atomic_paths(*finals, suffixes=suffixes) as temps:
+        temps[0].write_text(json.dumps(rep, indent=2) + "\n", encoding="utf-8")
+        if args.masks is not None:
+            idx = np.array([f.index for f in report.frames], dtype=np.int64)
+            shape = seq.camera.shape
+            masks = np.stack(
+                [f.mask if f.mask is not None else np.zeros(shape, bool) for f in report.frames]
+            )
+            used = np.array([f.used for f in report.frames], dtype=bool)
+            with open(temps[1], "wb") as fh:
+                np.savez_compressed(fh, frame_index=idx, masks=masks, used=used)
+        new_model.save(temps[-1])
     log.info("step %d: %d/%d frames used -> %s", report.step, len(report.frames_used), n, args.out)
     return 0
 
