@@ -47,15 +47,17 @@ def check_lens_model(camera: Camera, used: np.ndarray | None, source: str) -> No
     if not camera.has_distortion:
         return
     k1, k2, _, _, k3 = (float(k) for k in camera.dist)
-    u, v = camera.pixel_grid()
-    if used is not None:
-        u, v = u[used], v[used]
-    if u.size == 0:
-        return
+    if used is None:  # the farthest pixels are corners
+        u = np.array([0.0, camera.width - 1.0, 0.0, camera.width - 1.0])
+        v = np.array([0.0, 0.0, camera.height - 1.0, camera.height - 1.0])
+    else:
+        v, u = np.nonzero(used)
+        if u.size == 0:
+            return
     rd_used = float(np.hypot((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy).max())
     f_px = 0.5 * (camera.fx + camera.fy)
     # Undistorted radius = tan(angle off the axis): 0 .. 1e3 (89.94 degrees).
-    r = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 20001)])
+    r = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 4001)])  # steps of 0.5 %
     r2 = r * r
     rd = r * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
     slope = 1.0 + r2 * (3.0 * k1 + r2 * (5.0 * k2 + r2 * 7.0 * k3))
