@@ -75,7 +75,8 @@ def deferred_signals() -> Iterator[None]:
         yield
         return
     caught: list[int] = []
-    held = (signal.SIGINT, signal.SIGTERM)
+    # A handler installed outside Python reads as None and could not be put back: leave it.
+    held = [sig for sig in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(sig) is not None]
     previous = {
         sig: signal.signal(sig, lambda signum, _frame: caught.append(signum)) for sig in held
     }
