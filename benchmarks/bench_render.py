@@ -36,6 +36,17 @@ from sim.synthetic import write_toy_phantom
 CORES = len(os.sched_getaffinity(0))
 
 
+def cpu_simd() -> str:
+    """The widest x86 vector extension the CPU reports (Linux), which sets drjit's lane
+    count and Embree's packet size: figures from hosts that differ here do not compare."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            flags = next((ln.split(":", 1)[1].split() for ln in fh if ln.startswith("flags")), [])
+    except OSError:
+        return "unknown"
+    return next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "unknown")
+
+
 def rss_mb() -> float:
     """Current resident set size in MiB (Linux /proc)."""
     with open("/proc/self/statm") as fh:
@@ -70,6 +81,7 @@ def main() -> int:
     poses = intraop_path(path_target(phantom), TissueDistance(mesh), 80, seed=0, cfg=cfg.paths)
     print(f"faces: {len(mesh.faces)}")
     print(f"image: {cfg.camera.width}x{cfg.camera.height}")
+    print(f"cpu_simd: {cpu_simd()}")
 
     depth_r = MeshRenderer(mesh, replace_in(cfg, depth_only=True), depth_only=True)
     print(f"variant: {depth_r.variant}")
