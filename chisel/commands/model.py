@@ -107,7 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=Path,
         help="updated model file (.npz)",
         action=Output,
-        sidecar=lambda a: None if a.report is not None else a.out.with_suffix(".json"),
+        sidecar=lambda a: None if a.report is not None else _default_report(a.out),
     )
     p.add_argument(
         "--report", type=Path, default=None, help="JSON report (default OUT.json)", action=Output
@@ -224,6 +224,11 @@ def _progress(disable: bool, desc: str):  # noqa: ANN202
     return lambda it: tqdm(it, desc=desc, disable=disable, unit="frame", leave=False)
 
 
+def _default_report(model_out: Path) -> Path:
+    """Where ``update`` writes its report without ``--report``: beside the model."""
+    return model_out.with_suffix(".json")
+
+
 def _save_mesh(mesh, path: Path) -> None:  # noqa: ANN001 - trimesh.Trimesh
     suffix = path.suffix.lower().lstrip(".")
     if suffix not in ("ply", "stl", "obj", "off", "glb"):
@@ -332,7 +337,7 @@ def _cmd_update(args: argparse.Namespace) -> int:
         progress=_progress(args.no_progress, "update"),
         keep_maps=args.masks is not None,
     )
-    out_report = args.report or args.out.with_suffix(".json")
+    out_report = args.report or _default_report(args.out)
     rep = report.to_dict()
     rep.update(
         {
