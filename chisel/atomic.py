@@ -178,8 +178,7 @@ def atomic_dir(path: str | Path, marker: str) -> Iterator[Path]:
     path = Path(os.path.abspath(path))
     if path.exists() and not path.is_dir():
         raise InvalidInputError(path, "exists and is not a folder; refusing to replace it")
-    cwd = Path.cwd().resolve()
-    if path.resolve() == cwd or path.resolve() in cwd.parents:
+    if overlap(path, Path.cwd()) == "replaces":
         raise InvalidInputError(
             path, "the output folder holds the current folder; replacing it would delete that"
         )
