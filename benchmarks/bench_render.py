@@ -2,7 +2,9 @@
 
 Goals (2-core CPU, llvm_ad_rgb): depth-only >= 200 frames/s; RGB (direct lighting,
 16 spp) + depth >= 20 frames/s; resident memory flat over 1000 frames. The RGB render
-is compared with Mitsuba's own ``direct`` integrator on the same frames (CPU time).
+is compared with Mitsuba's own ``direct`` integrator on the same frames (CPU time). The
+16-spp primary rays are also timed alone: ``rgbd_fps_bound_primary_rays`` is the frame
+rate this host could not exceed even if shading, shadow rays and depth were free.
 
 Usage: python benchmarks/bench_render.py [--phantom DIR] [--frames 1000] [--spp 16]
                                          [--variant auto|cuda_ad_rgb|llvm_ad_rgb|scalar_rgb]
@@ -125,7 +127,18 @@ def main() -> int:
         r.render_radiance(poses[i], seed=i)
     t_rgb = (time.perf_counter() - t1) / 20
     c_rgb = (time.process_time() - c1) / 20
-    rss1 = rss_mb()  # before the peer below allocates its film
+    rss1 = rss_mb()  # before the primary rays and the peer below allocate
+    # The 16-spp primary rays alone, the part of a colour frame that no shading or shadow
+    # work can remove: 1000 / their wall time bounds rgbd_fps on this host.
+    # (scalar_rgb renders through Mitsuba's own integrator and has no such split.)
+    t_primary = c_primary = None
+    if r.jit:
+        r.primary_hit_mm(poses[0], seed=0)
+        t1, c1 = time.perf_counter(), time.process_time()
+        for i in range(20):
+            r.primary_hit_mm(poses[i], seed=i)
+        t_primary = (time.perf_counter() - t1) / 20
+        c_primary = (time.process_time() - c1) / 20
     # Peer in the same run: Mitsuba's own ``direct`` integrator (mi.render on the wider
     # undistorted grid, then the remap), the path the fast integrator replaced.
     r.render_radiance_reference(poses[0], seed=0)
@@ -140,6 +153,10 @@ def main() -> int:
     print(f"rgb_speedup_vs_mitsuba_direct_wall: {t_ref / t_rgb:.2f}")
     print(f"rgb_cpu_ms_per_frame: {1000 * c_rgb:.1f}")
     print(f"rgb_mitsuba_direct_cpu_ms_per_frame: {1000 * c_ref:.1f}")
+    if t_primary is not None and c_primary is not None:
+        print(f"rgb_primary_rays_ms: {1000 * t_primary:.1f}")
+        print(f"rgb_primary_rays_cpu_ms_per_frame: {1000 * c_primary:.1f}")
+        print(f"rgbd_fps_bound_primary_rays: {1 / t_primary:.1f}")
     print(f"rss_start_mb: {rss0:.1f}")
     print(f"rss_growth_frames_{mark}_to_{args.frames}_mb: {rss1 - rss_mark:.1f}")
     print(f"rss_growth_mb: {rss1 - rss0:.1f}")

@@ -265,6 +265,23 @@ class MeshRenderer:
             return self.render_radiance_reference(T, seed)
         return self._direct.render(T, seed=int(seed))
 
+    def primary_hit_mm(self, T_world_from_cam: np.ndarray, seed: int = 0) -> np.ndarray:
+        """Distance along each colour sample's primary ray to the first surface, alone.
+
+        The part of :meth:`render_radiance` no shading or shadow work can remove, so its
+        time bounds the RGB frame rate on a host (``benchmarks/bench_render.py``).
+        T_world_from_cam : (4, 4) float64, mm. Returns (n_used_pixels, spp) float32 mm,
+        inf on a miss; the used pixels in row-major order. JIT variants only.
+        """
+        if self._direct is None:
+            raise ValueError(
+                f"MeshRenderer: the primary rays alone need a JIT variant and RGB "
+                f"(variant {self.variant}, depth_only={self.depth_only})"
+            )
+        T = check_rigid(T_world_from_cam, "T_world_from_cam")
+        t = np.asarray(self._direct.primary_hit_mm(T, seed=int(seed)), dtype=np.float32)
+        return t.reshape(self._direct.n_pixels, self._direct.spp)
+
     def render_radiance_reference(self, T_world_from_cam: np.ndarray, seed: int = 0) -> np.ndarray:
         """Radiance from ``mi.render`` with Mitsuba's ``direct`` integrator (the reference).
 

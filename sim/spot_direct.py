@@ -272,21 +272,21 @@ class SpotDirectIntegrator:
         # principled.cpp: eta from ``specular`` when no ``eta`` is given.
         self.eta = 2.0 / (1.0 - math.sqrt(0.08 * float(specular))) - 1.0
 
-    def radiance(self, T_world_from_cam: np.ndarray, seed: int) -> object:
-        """Linear radiance of the ``used`` pixels, as an unevaluated drjit Color3f.
+    def sample_rays(self, T_world_from_cam: np.ndarray, seed: int) -> tuple[object, object]:
+        """The primary rays of every sample: ``spp`` per used pixel, pixel-major.
 
         T_world_from_cam : (4, 4) float64 rigid pose, mm (OpenCV camera axes).
-        seed : sampler seed (same seed and pose -> same values).
+        seed : sampler seed (same seed and pose -> same rays).
+        Returns (origin, d_world): an unevaluated drjit Point3f (the camera centre, mm)
+        and Vector3f (unit world directions, ``n_pixels * spp`` of them).
         """
         mi, dr = self.mi, self.dr
         T = np.asarray(T_world_from_cam, dtype=np.float64)
-        light_pos = T[:3, :3] @ self.light_offset_mm + T[:3, 3]
         # Per-frame values enter as opaque scalars (not literals) so the traced kernel is
         # the same every frame and drjit reuses the compiled one; a scalar is loaded
         # once per kernel, not gathered per lane.
         R = [dr.opaque(mi.Float, float(x)) for x in T[:3, :3].ravel()]
         origin = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in T[:3, 3]))
-        lp = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in light_pos))
         spp = self.spp
         idx = dr.arange(mi.UInt32, self.n_pixels * spp)
         pixel = idx // spp
@@ -307,6 +307,34 @@ class SpotDirectIntegrator:
             R[3] * d.x + R[4] * d.y + R[5] * d.z,
             R[6] * d.x + R[7] * d.y + R[8] * d.z,
         )
+        return origin, d_world
+
+    def primary_hit_mm(self, T_world_from_cam: np.ndarray, seed: int) -> object:
+        """Distance in mm along each of :meth:`sample_rays` to the first surface (inf on
+        a miss), as an unevaluated drjit Float: the primary rays alone.
+
+        Their cost is what :meth:`radiance` cannot go below on a host, shading and shadow
+        rays aside; ``benchmarks/bench_render.py`` reports it as the host's bound.
+        """
+        mi = self.mi
+        origin, d_world = self.sample_rays(T_world_from_cam, seed)
+        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(origin, d_world), coherent=True)
+        return self.dr.select(pi.is_valid(), pi.t, self.dr.inf)
+
+    def radiance(self, T_world_from_cam: np.ndarray, seed: int) -> object:
+        """Linear radiance of the ``used`` pixels, as an unevaluated drjit Color3f.
+
+        T_world_from_cam : (4, 4) float64 rigid pose, mm (OpenCV camera axes).
+        seed : sampler seed (same seed and pose -> same values).
+        """
+        mi, dr = self.mi, self.dr
+        T = np.asarray(T_world_from_cam, dtype=np.float64)
+        light_pos = T[:3, :3] @ self.light_offset_mm + T[:3, 3]
+        lp = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in light_pos))
+        # The light points along the camera's +z.
+        axis = mi.Vector3f(*(dr.opaque(mi.Float, float(x)) for x in T[:3, 2]))
+        spp = self.spp
+        origin, d_world = self.sample_rays(T, seed)
         pi = self.scene.ray_intersect_preliminary(mi.Ray3f(origin, d_world), coherent=True)
         active = pi.is_valid()
         p = origin + d_world * pi.t
@@ -322,7 +350,6 @@ class SpotDirectIntegrator:
         dist2 = dr.squared_norm(to_light)
         dist = dr.sqrt(dist2)
         wo = to_light / dist
-        axis = mi.Vector3f(R[2], R[5], R[8])  # the light points along the camera's +z
         cos_t = -dr.dot(wo, axis)
         falloff = dr.select(
             cos_t < self._cos_beam, (self._cutoff_rad - dr.acos(cos_t)) * self._inv_transition, 1.0

@@ -66,6 +66,10 @@ def test_bench_render_prints_variant_depth_fps_and_rgbd_fps_last() -> None:
     assert figures["variant"] in ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
     assert number(figures["depth_fps"]) > 0
     assert number(figures["rgb_speedup_vs_mitsuba_direct_wall"]) > 0
+    if figures["variant"] != "scalar_rgb":
+        # The primary rays alone cost less than the whole colour frame.
+        assert number(figures["rgb_primary_rays_ms"]) < number(figures["rgb_render_ms"])
+        assert number(figures["rgbd_fps_bound_primary_rays"]) > 0
 
 
 def test_bench_render_refuses_zero_frames() -> None:

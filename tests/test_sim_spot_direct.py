@@ -280,3 +280,47 @@ def test_sensor_in_drjit_matches_the_numpy_sensor_model() -> None:
     # No correlation between channels or neighbouring pixels (independent draws).
     c = np.corrcoef(np.stack([ours[:-1, 0], ours[1:, 0], ours[:-1, 1]]))
     assert np.abs(c[np.triu_indices(3, 1)]).max() < 0.05
+
+
+def test_sample_rays_fall_in_their_strata_and_primary_hits_match_open3d() -> None:
+    """The rays behind every colour sample: inside their pixel's stratum (under the lens
+    distortion), and their first hit where Open3D's ray caster finds it."""
+    import open3d as o3d
+
+    mesh = toy_meshes(1)[1]
+    r = _renderer(mesh)  # 64 spp: 8 x 8 strata per pixel
+    S = r._direct
+    T = look_at([34.0, 1.0, 0.5], [47.0, -1.5, 0.0], [0, 0, 1])
+    origin, d_world = S.sample_rays(T, seed=4)
+    t_mm = r.primary_hit_mm(T, seed=4).astype(np.float64).ravel()
+    o = np.asarray(origin, dtype=np.float64).ravel()
+    d = np.asarray(d_world, dtype=np.float64).T
+    n = S.n_pixels * S.spp
+    assert d.shape == (n, 3) and t_mm.shape == (n,)
+    np.testing.assert_allclose(o, T[:3, 3], atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
+
+    uv, z = r.camera.project(d @ T[:3, :3])  # world -> camera directions
+    assert (z > 0).all()
+    u, v = r.camera.pixel_grid()
+    pix = np.repeat(np.stack([u[r.field_stop], v[r.field_stop]], -1), S.spp, axis=0)
+    offset = uv - pix  # in [-0.5, 0.5] px up to the linearised distortion
+    assert np.abs(offset).max() < 0.5 + 0.01
+    side = 8
+    s = np.tile(np.arange(S.spp), S.n_pixels)
+    stratum = np.clip(np.floor((offset + 0.5) * side), 0, side - 1)
+    inside = (stratum[:, 0] == s % side) & (stratum[:, 1] == s // side)
+    assert inside.mean() > 0.99, inside.mean()
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)),
+    )
+    rays = np.concatenate([np.broadcast_to(o, d.shape), d], axis=1).astype(np.float32)
+    ref = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+    np.testing.assert_array_equal(np.isfinite(t_mm), np.isfinite(ref))
+    hit = np.isfinite(ref)
+    assert hit.mean() > 0.9
+    err = np.abs(t_mm[hit] - ref[hit])
+    assert np.median(err) < 1e-4 and np.quantile(err, 0.999) < 1e-3, err.max()
