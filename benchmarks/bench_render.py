@@ -22,6 +22,7 @@ import resource
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,14 @@ def rss_mb() -> float:
     with open("/proc/self/statm") as fh:
         pages = int(fh.read().split()[1])
     return pages * resource.getpagesize() / 2**20
+
+
+def per_call_s(call: Callable[[int], object], n: int) -> tuple[float, float]:
+    """Mean wall and CPU seconds of ``call(0) ... call(n - 1)``."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    for i in range(n):
+        call(i)
+    return (time.perf_counter() - t0) / n, (time.process_time() - c0) / n
 
 
 def main() -> int:
@@ -122,31 +131,19 @@ def main() -> int:
             rss_mark = rss_mb()
     elapsed = time.perf_counter() - t0
     rgbd_cpu_ms = 1000 * (time.process_time() - c0) / args.frames
-    t1, c1 = time.perf_counter(), time.process_time()
-    for i in range(20):
-        r.render_radiance(poses[i], seed=i)
-    t_rgb = (time.perf_counter() - t1) / 20
-    c_rgb = (time.process_time() - c1) / 20
+    t_rgb, c_rgb = per_call_s(lambda i: r.render_radiance(poses[i], seed=i), 20)
     rss1 = rss_mb()  # before the primary rays and the peer below allocate
     # The 16-spp primary rays alone, the part of a colour frame that no shading or shadow
     # work can remove: 1000 / their wall time bounds rgbd_fps on this host.
     # (scalar_rgb renders through Mitsuba's own integrator and has no such split.)
     t_primary = c_primary = None
     if r.jit:
-        r.primary_hit_mm(poses[0], seed=0)
-        t1, c1 = time.perf_counter(), time.process_time()
-        for i in range(20):
-            r.primary_hit_mm(poses[i], seed=i)
-        t_primary = (time.perf_counter() - t1) / 20
-        c_primary = (time.process_time() - c1) / 20
+        r.primary_hit_mm(poses[0], seed=0)  # compile
+        t_primary, c_primary = per_call_s(lambda i: r.primary_hit_mm(poses[i], seed=i), 20)
     # Peer in the same run: Mitsuba's own ``direct`` integrator (mi.render on the wider
     # undistorted grid, then the remap), the path the fast integrator replaced.
-    r.render_radiance_reference(poses[0], seed=0)
-    t1, c1 = time.perf_counter(), time.process_time()
-    for i in range(10):
-        r.render_radiance_reference(poses[i], seed=i)
-    t_ref = (time.perf_counter() - t1) / 10
-    c_ref = (time.process_time() - c1) / 10
+    r.render_radiance_reference(poses[0], seed=0)  # compile
+    t_ref, c_ref = per_call_s(lambda i: r.render_radiance_reference(poses[i], seed=i), 10)
     print(f"rgb_render_ms: {1000 * t_rgb:.1f}")
     print(f"rgb_mitsuba_direct_ms: {1000 * t_ref:.1f}")
     # On a GPU variant the CPU figures are host time only; compare the wall times there.
