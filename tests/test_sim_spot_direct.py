@@ -324,3 +324,6 @@ def test_sample_rays_fall_in_their_strata_and_primary_hits_match_open3d() -> Non
     assert hit.mean() > 0.9
     err = np.abs(t_mm[hit] - ref[hit])
     assert np.median(err) < 1e-4 and np.quantile(err, 0.999) < 1e-3, err.max()
+    depth_only = MeshRenderer(mesh, replace_in(r.cfg, depth_only=True), depth_only=True)
+    with pytest.raises(ValueError, match="depth_only=True"):
+        depth_only.primary_hit_mm(T)
