@@ -205,16 +205,15 @@ class TsdfModel:
             raise InvalidInputError(path, "model file is missing")
         try:
             loaded = np.load(path, allow_pickle=False)
-            if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array
-                raise InvalidInputError(path, "not a model file: a single .npy array, not an .npz")
-            with loaded as z:
-                data = {k: z[k] for k in z.files}
+            if isinstance(loaded, np.lib.npyio.NpzFile):
+                with loaded as z:
+                    data = {k: z[k] for k in z.files}
         except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
-            if isinstance(exc, InvalidInputError):
-                raise
             raise InvalidInputError(
                 path, f"cannot read model (.npz without pickle): {exc}"
             ) from None
+        if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array
+            raise InvalidInputError(path, "not a model file: a single .npy array, not an .npz")
         fmt = str(data.get("format", ""))
         if fmt != MODEL_FORMAT:
             raise FormatVersionError(path, f"format is {fmt!r}, expected {MODEL_FORMAT!r}")
