@@ -107,7 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=Path,
         help="updated model file (.npz)",
         action=Output,
-        sidecar=lambda a: None if a.report is not None else _default_report(a.out),
+        sidecar=_default_report,
     )
     p.add_argument(
         "--report", type=Path, default=None, help="JSON report (default OUT.json)", action=Output
@@ -224,9 +224,9 @@ def _progress(disable: bool, desc: str):  # noqa: ANN202
     return lambda it: tqdm(it, desc=desc, disable=disable, unit="frame", leave=False)
 
 
-def _default_report(model_out: Path) -> Path:
-    """Where ``update`` writes its report without ``--report``: beside the model."""
-    return model_out.with_suffix(".json")
+def _default_report(args: argparse.Namespace) -> Path | None:
+    """The report ``update`` writes beside the model when no ``--report`` is given."""
+    return None if args.report is not None else args.out.with_suffix(".json")
 
 
 def _save_mesh(mesh, path: Path) -> None:  # noqa: ANN001 - trimesh.Trimesh
@@ -337,7 +337,7 @@ def _cmd_update(args: argparse.Namespace) -> int:
         progress=_progress(args.no_progress, "update"),
         keep_maps=args.masks is not None,
     )
-    out_report = args.report or _default_report(args.out)
+    out_report = args.report or _default_report(args)
     rep = report.to_dict()
     rep.update(
         {
