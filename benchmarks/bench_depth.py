@@ -35,7 +35,7 @@ from chisel.depth import (
     load_depth_source,
     load_predictor,
 )
-from chisel.sequence import Frame, Sequence
+from chisel.io.sequence import Frame, Sequence
 
 
 class ConstantDepth:

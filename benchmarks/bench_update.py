@@ -2,7 +2,7 @@
 
 Scene: ``python -m phantoms generate`` (seed, 1 bite) when the phantom generator is
 installed; camera poses along the phantom's airway path looking at the bite target
-(``chisel.geometry.look_at``), ground-truth depth by ray casting the step meshes
+(``chisel.core.geometry.look_at``), ground-truth depth by ray casting the step meshes
 (``sim`` is not needed). Falls back to the analytic test room with ``--scene room``.
 
 Measured, at 320x256 and 0.5 mm voxels by default:
@@ -43,12 +43,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from chisel.core.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
+from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth
 from chisel.fusion import integrate
-from chisel.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
+from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame
 from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, preop_bounds, update_step
 
 

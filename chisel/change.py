@@ -21,8 +21,8 @@ import cv2
 import numba
 import numpy as np
 
-from chisel.errors import EmptyResultError, InvalidInputError
-from chisel.geometry import Camera, invert_rigid
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.geometry import Camera, invert_rigid
 
 MIN_SCALE_PIXELS = 50
 """Fewest pixels valid in both the render and the estimate for a scale to be solved."""

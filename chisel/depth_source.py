@@ -4,7 +4,7 @@ The protocol
 ------------
 A depth source is **any callable** ``source(frame) -> depth``:
 
-* ``frame`` is a :class:`chisel.sequence.Frame` (``rgb`` (H, W, 3) uint8 when the
+* ``frame`` is a :class:`chisel.io.sequence.Frame` (``rgb`` (H, W, 3) uint8 when the
   sequence has images, ``depth_mm`` when it has depth, ``T_world_from_cam`` the tracked
   pose, ``mask`` the usable pixels, ``index`` the frame number);
 * it returns an (H, W) float32 z-depth map on the frame's raw pixel grid, NaN (or <= 0)
@@ -13,7 +13,7 @@ A depth source is **any callable** ``source(frame) -> depth``:
 
 An optional attribute ``is_metric: bool`` declares the depth to be in millimetres
 (ground truth, a depth sensor). Metric depth is checked for plausible units
-(:func:`chisel.sequence.check_depth_mm` refuses depth that looks like metres); the scale
+(:func:`chisel.io.sequence.check_depth_mm` refuses depth that looks like metres); the scale
 is still solved robustly so small calibration errors are absorbed. Sources without the
 attribute are treated as scale-free.
 
@@ -32,8 +32,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from chisel.errors import InvalidInputError
-from chisel.sequence import Frame, Sequence
+from chisel.core.errors import InvalidInputError
+from chisel.io.sequence import Frame, Sequence
 
 
 @runtime_checkable

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from chisel.errors import InvalidInputError, PoseError
-from chisel.geometry import Camera, check_rigid, invert_rigid
+from chisel.core.errors import InvalidInputError, PoseError
+from chisel.core.geometry import Camera, check_rigid, invert_rigid
 from chisel.model import TsdfModel
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
-from chisel.errors import EmptyResultError
-from chisel.geometry import transform_points
+from chisel.core.errors import EmptyResultError
+from chisel.core.geometry import transform_points
 from chisel.model import TsdfModel
 
 

@@ -17,7 +17,7 @@ On disk a model is one ``.npz`` file (read with ``allow_pickle=False``)::
     trunc_mm            float64 scalar
     step                int64 scalar, surgical steps applied since the preop model (0 = preop)
 
-Files are written atomically (:func:`chisel.atomic.atomic_path`): a failed save never
+Files are written atomically (:func:`chisel.core.atomic.atomic_path`): a failed save never
 leaves a half-written model behind.
 """
 
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from chisel.atomic import atomic_path
-from chisel.errors import FormatVersionError, InvalidInputError
+from chisel.core.atomic import atomic_path
+from chisel.core.errors import FormatVersionError, InvalidInputError
 
 MODEL_FORMAT = "endoscopic-chisel/model"
 MODEL_VERSION = 1

@@ -23,8 +23,8 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from chisel.errors import InvalidInputError
-from chisel.geometry import rotation_angle_deg, transform_points
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import rotation_angle_deg, transform_points
 
 if TYPE_CHECKING:
     import open3d as o3d

@@ -2,7 +2,7 @@
 
 Pure functions at the boundaries (:func:`build_preop_model`, :func:`update_step`,
 :func:`render_depth`) and one streaming class (:class:`ChiselUpdater`) that takes one
-frame at a time for a navigation system. File I/O lives in ``chisel.commands.model``.
+frame at a time for a navigation system. File I/O lives in ``chisel.cli.cmd_model``.
 
 Per frame of a surgical step (paper, section 2; deviations in ``docs/updater.md``):
 
@@ -44,13 +44,20 @@ from chisel.change import (
     solve_scale,
     warp_depth,
 )
+from chisel.core.errors import EmptyResultError, InvalidInputError, PoseError
+from chisel.core.geometry import (
+    Camera,
+    check_rigid,
+    invert_rigid,
+    rotation_angle_deg,
+    transform_points,
+)
+from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import is_metric
-from chisel.errors import EmptyResultError, InvalidInputError, PoseError
 from chisel.fusion import check_pose_in_model, integrate
-from chisel.geometry import Camera, check_rigid, invert_rigid, rotation_angle_deg, transform_points
+from chisel.io.sequence import Frame, check_depth_mm
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
-from chisel.raycast import MeshRaycaster
 from chisel.registration import (
     RegistrationConfig,
     RegistrationResult,
@@ -60,7 +67,6 @@ from chisel.registration import (
     register_global,
     robust_mean_transform,
 )
-from chisel.sequence import Frame, check_depth_mm
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +143,7 @@ MIN_TRACKER_FITNESS = 0.5
 # ---------------------------------------------------------------------------- rendering
 class ModelRenderer:
     """Depth renders of a model's surface (marching cubes once, then ray casting with
-    :class:`~chisel.raycast.MeshRaycaster`: Mitsuba where a JIT variant works, else Open3D)."""
+    :class:`~chisel.core.raycast.MeshRaycaster`: Mitsuba where a JIT variant works, else Open3D)."""
 
     def __init__(self, model: TsdfModel) -> None:
         self.mesh: trimesh.Trimesh = extract_mesh(model, with_color=False)
@@ -199,7 +205,7 @@ def build_preop_model(
 ) -> TsdfModel:
     """Fuse the CT surface rendered at every preoperative pose into a new TSDF model.
 
-    surface : CT segmentation surface, world mm (see :func:`chisel.ct.load_ct_surface`).
+    surface : CT segmentation surface, world mm (see :func:`chisel.io.ct.load_ct_surface`).
     poses : (N, 4, 4) float64 ``T_world_from_cam`` of the preop sequence, mm.
     rgbs : N (H, W, 3) uint8 images (or None) for colour; masks : N (H, W) bool or None.
     Curless-Levoy averaging with w = 1 per valid pixel; free space is carved (d = +1).
@@ -592,7 +598,7 @@ def validate_estimate(depth: np.ndarray, frame: Frame, camera: Camera, metric: b
     """Check a depth source's output for ``frame``; returns (H, W) float32, NaN = invalid.
 
     Raises :class:`InvalidInputError` on a wrong shape or an all-invalid map, and (for
-    metric sources) :class:`~chisel.errors.DepthUnitsError` on depth that looks like metres.
+    metric sources) :class:`~chisel.core.errors.DepthUnitsError` on depth that looks like metres.
     """
     source = f"depth of frame {frame.index}"
     d = np.asarray(depth)

@@ -11,7 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
-from chisel.errors import run_command
+from chisel.core.errors import run_command
 from sim.config import SimConfig, load_config, replace_in
 
 _DESCRIPTION = """\
@@ -21,7 +21,7 @@ collision-checked camera paths, with ground-truth depth and tracked (noisy) pose
 Units: millimetres and degrees. Poses are T_world_from_cam (world = the phantom's CT
 frame) with OpenCV camera axes (+x right, +y down, +z forward). Depth is z-depth in mm
 (float32 .npy, 0 = invalid on disk). Output folders follow the sequence contract of
-chisel.sequence (docs/sim.md, docs/conventions.md).
+chisel.io.sequence (docs/sim.md, docs/conventions.md).
 """
 
 _RENDER_EPILOG = """\

@@ -21,9 +21,9 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 
-from chisel.errors import CameraError
-from chisel.geometry import Camera
-from chisel.undistort import check_lens_model
+from chisel.core.errors import CameraError
+from chisel.core.geometry import Camera
+from chisel.io.undistort import check_lens_model
 from sim.errors import ConfigError
 
 Range = tuple[float, float]
@@ -230,7 +230,7 @@ class CameraConfig:
         if self.K is not None:
             K = np.asarray(self.K, dtype=float)
             _check(K.shape == (3, 3), "camera.K", f"expected a 3x3 matrix, got shape {K.shape}")
-        camera = self.camera()  # validates K and dist through chisel.geometry.Camera
+        camera = self.camera()  # validates K and dist through chisel.core.geometry.Camera
         # The bound a sequence.json is read with, so that every render can be read back.
         _check(
             camera.principal_point_in_image,
@@ -244,7 +244,7 @@ class CameraConfig:
             raise ConfigError("camera.dist", exc.problem) from None
 
     def camera(self) -> Camera:
-        """The :class:`chisel.geometry.Camera` this configuration describes."""
+        """The :class:`chisel.core.geometry.Camera` this configuration describes."""
         dist = np.asarray(self.dist, dtype=np.float64)
         if self.K is not None:
             return Camera(int(self.width), int(self.height), np.asarray(self.K, float), dist)

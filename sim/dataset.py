@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from chisel.atomic import atomic_write_text
+from chisel.core.atomic import atomic_write_text
 from sim.config import SimConfig, config_to_dict
 from sim.errors import ConfigError, PhantomError
 from sim.pipeline import drawn_config, render_phantom

@@ -1,16 +1,16 @@
 """Errors raised by the simulator's public entry points.
 
 Every error names the file or argument and the problem (expected vs actual). They all
-derive from :class:`SimError`, itself a :class:`chisel.errors.InvalidInputError`, so
+derive from :class:`SimError`, itself a :class:`chisel.core.errors.InvalidInputError`, so
 callers can catch them as ``ValueError`` or as chisel errors. ``VariantError`` is
-:class:`chisel.errors.VariantError` (the variant probe, shared with the updater's ray
-caster, lives in :mod:`chisel.mitsuba_variant`).
+:class:`chisel.core.errors.VariantError` (the variant probe, shared with the updater's ray
+caster, lives in :mod:`chisel.core.mitsuba_variant`).
 """
 
 from __future__ import annotations
 
-from chisel.errors import InvalidInputError
-from chisel.errors import VariantError as VariantError  # the variant probe is chisel's
+from chisel.core.errors import InvalidInputError
+from chisel.core.errors import VariantError as VariantError  # the variant probe is chisel's
 
 
 class SimError(InvalidInputError):

@@ -12,8 +12,8 @@ Rendering with distortion: Mitsuba renders an undistorted square-pixel pinhole i
 (the :class:`RenderGrid`, wide enough to cover every ray of the distorted image), which
 is remapped onto the raw (distorted) pixel grid with ``cv2.remap``: bilinear for colour,
 nearest neighbour for depth. Ground-truth depth on the JIT variants does not go through
-this remap: it is the exact ray length of :meth:`chisel.geometry.Camera.rays_cam`'s ray
-through each raw pixel centre, computed in the kernel (:func:`chisel.raycast.jit_z_depth`).
+this remap: it is the exact ray length of :meth:`chisel.core.geometry.Camera.rays_cam`'s ray
+through each raw pixel centre, computed in the kernel (:func:`chisel.core.raycast.jit_z_depth`).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from chisel.errors import CameraError
-from chisel.geometry import Camera, check_rigid
+from chisel.core.errors import CameraError
+from chisel.core.geometry import Camera, check_rigid
 
 T_CV_FROM_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
 """(4, 4) maps Mitsuba camera-frame points (+x left, +y up) to OpenCV camera-frame points."""

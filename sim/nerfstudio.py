@@ -28,9 +28,9 @@ from typing import Literal
 
 import numpy as np
 
-from chisel.atomic import atomic_dir, check_output_outside
-from chisel.errors import InvalidInputError, OutputError
-from chisel.sequence import Sequence, imwrite
+from chisel.core.atomic import atomic_dir, check_output_outside
+from chisel.core.errors import InvalidInputError, OutputError
+from chisel.io.sequence import Sequence, imwrite
 
 T_CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 """(4, 4) maps OpenGL camera-frame points to OpenCV camera-frame points (and back)."""

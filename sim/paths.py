@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from chisel.geometry import look_at, make_transform
+from chisel.core.geometry import look_at, make_transform
 from sim.collision import TissueDistance
 from sim.config import PathConfig
 from sim.errors import PathError, PathInTissueError, PhantomError

@@ -7,7 +7,7 @@ Layout written (atomically: the whole ``OUT`` appears complete or not at all)::
     OUT/step_01 .. step_NN/  one intraoperative sequence per surgical step (its own mesh)
     OUT/eval/step_00 .. NN/  the fixed evaluation poses on each step's mesh
 
-Each sequence folder follows :mod:`chisel.sequence` (``poses.txt`` = tracked poses,
+Each sequence folder follows :mod:`chisel.io.sequence` (``poses.txt`` = tracked poses,
 ``poses_true.txt`` = true poses, ``depth/``, ``rgb/``, ``mask/`` = valid depth,
 ``camera_mask.png`` = field stop). Evaluation sequences store exact poses in both files.
 """
@@ -26,9 +26,9 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from chisel.atomic import atomic_dir, check_output_outside
-from chisel.mitsuba_variant import choose_variant
-from chisel.sequence import Frame, SequenceWriter
+from chisel.core.atomic import atomic_dir, check_output_outside
+from chisel.core.mitsuba_variant import choose_variant
+from chisel.io.sequence import Frame, SequenceWriter
 from sim.appearance import TextureVolume, randomize, texture_volume
 from sim.collision import TissueDistance
 from sim.config import SimConfig, config_to_dict

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from chisel.geometry import check_rigid, make_transform
-from chisel.mitsuba_variant import load_mitsuba
-from chisel.raycast import jit_z_depth, unit_rays
+from chisel.core.geometry import check_rigid, make_transform
+from chisel.core.mitsuba_variant import load_mitsuba
+from chisel.core.raycast import jit_z_depth, unit_rays
 from sim.appearance import TextureVolume
 from sim.config import SimConfig
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from chisel.atomic import check_output_outside
-from chisel.errors import InvalidInputError
-from chisel.sequence import Frame, Sequence, SequenceWriter
+from chisel.core.atomic import check_output_outside
+from chisel.core.errors import InvalidInputError
+from chisel.io.sequence import Frame, Sequence, SequenceWriter
 from sim.config import TrackingConfig
 from sim.tracking import tracked_poses
 

@@ -41,7 +41,7 @@ from types import ModuleType
 import cv2
 import numpy as np
 
-from chisel.geometry import Camera
+from chisel.core.geometry import Camera
 from sim.appearance import TEXEL_LEVELS, TextureVolume
 from sim.config import ImagingConfig, LightConfig
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from chisel.atomic import atomic_dir
+from chisel.core.atomic import atomic_dir
 
 CHAMBER_CENTER_MM = np.array([38.0, 0.0, 0.0])
 CHAMBER_RADIUS_MM = 9.0

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from chisel.geometry import check_rigid, make_transform
+from chisel.core.geometry import check_rigid, make_transform
 from sim.config import TrackingConfig
 
 
@@ -47,7 +47,7 @@ def tracked_poses(
     true_poses : (N, 4, 4) float64 ``T_world_from_cam``, mm. Returns (N, 4, 4) float64.
     ``seed`` draws the jitter; ``handeye_seed`` (default ``seed``) the constant hand-eye
     error, so several sequences of one session can share one calibration error.
-    Raises :class:`chisel.errors.PoseError` on non-rigid or non-finite poses.
+    Raises :class:`chisel.core.errors.PoseError` on non-rigid or non-finite poses.
     """
     T = check_rigid(true_poses, "true poses").reshape(-1, 4, 4)
     n = len(T)

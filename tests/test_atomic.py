@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from chisel.atomic import atomic_dir, atomic_paths, atomic_write_text, check_output_outside
-from chisel.errors import InvalidInputError
+from chisel.core.atomic import atomic_dir, atomic_paths, atomic_write_text, check_output_outside
+from chisel.core.errors import InvalidInputError
 
 
 def test_output_may_not_replace_hold_or_sit_inside_an_input(tmp_path: Path) -> None:

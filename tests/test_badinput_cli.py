@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chisel.atomic import atomic_dir
-from chisel.errors import InvalidInputError, run_command
-from chisel.sequence import Sequence
+from chisel.core.atomic import atomic_dir
+from chisel.core.errors import InvalidInputError, run_command
+from chisel.io.sequence import Sequence
 from sim.cli import main
 from sim.config import SimConfig, replace_in
 from sim.dataset import build_dataset

@@ -1,6 +1,6 @@
 """Bad sequence folders: one error naming the file and the problem, inputs and outputs kept.
 
-Cases found by trying to break ``chisel.sequence.Sequence``, ``sim export-nerfstudio`` and
+Cases found by trying to break ``chisel.io.sequence.Sequence``, ``sim export-nerfstudio`` and
 ``sim retrack``: an output folder that is, holds or lies inside the input sequence (which
 the atomic write would have deleted), hand-edited ``sequence.json`` headers that crashed
 with a traceback or were accepted, missing pose files, and frames that are missing,
@@ -18,10 +18,10 @@ import cv2
 import numpy as np
 import pytest
 
-import chisel.sequence as seqmod
-from chisel.errors import CameraError, InvalidInputError, OutputError, PoseError
-from chisel.geometry import Camera, look_at
-from chisel.sequence import Frame, Sequence, write_sequence
+import chisel.io.sequence as seqmod
+from chisel.core.errors import CameraError, InvalidInputError, OutputError, PoseError
+from chisel.core.geometry import Camera, look_at
+from chisel.io.sequence import Frame, Sequence, write_sequence
 from sim.cli import main
 from sim.config import TrackingConfig
 from sim.nerfstudio import export_nerfstudio

@@ -11,8 +11,8 @@ from chisel.change import (
     solve_scale,
     warp_depth,
 )
-from chisel.errors import EmptyResultError, InvalidInputError
-from chisel.geometry import Camera, invert_rigid, look_at, transform_points
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.geometry import Camera, invert_rigid, look_at, transform_points
 
 
 def _bumpy_depth(cam: Camera) -> np.ndarray:

@@ -12,6 +12,9 @@ import torch
 import trimesh
 
 from chisel import cli
+from chisel.core.errors import EmptyResultError, FormatVersionError, InvalidInputError
+from chisel.core.geometry import Camera, look_at
+from chisel.core.raycast import MeshRaycaster
 from chisel.depth import (
     DEFAULT_CHECKPOINT,
     AugmentConfig,
@@ -38,10 +41,7 @@ from chisel.depth import (
 )
 from chisel.depth.data import augment, downsample_targets
 from chisel.depth.train import resolve_device
-from chisel.errors import EmptyResultError, FormatVersionError, InvalidInputError
-from chisel.geometry import Camera, look_at
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame, Sequence, SequenceWriter
+from chisel.io.sequence import Frame, Sequence, SequenceWriter
 
 TINY = DepthNetConfig(widths=(8, 12, 16), blocks=(1, 1, 1))
 W, H = 64, 48

@@ -12,39 +12,47 @@ import pytest
 import trimesh
 
 from chisel.cli import main as cli_main
-from chisel.errors import EmptyResultError, InvalidInputError
-from chisel.evaluate import (
-    METRIC_KEYS,
-    METRICS_FORMAT,
-    ChangeMaskInput,
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.geometry import Camera, look_at
+from chisel.eval.masks import (
+    mask_precision_recall,
+    true_change_masks,
+    true_change_masks_from_depths,
+)
+from chisel.eval.metrics import (
     RoiBox,
-    SurfaceMetricConfig,
-    aggregate_seeds,
-    assemble_table,
     correspondence_error,
-    distance_metrics,
+    render_depths,
+)
+from chisel.eval.step import (
+    ChangeMaskInput,
     evaluate_methods,
     evaluate_step,
     load_change_masks,
     load_mesh,
-    mask_precision_recall,
+)
+from chisel.eval.surface import (
+    SurfaceMetricConfig,
+    distance_metrics,
+    sample_surface_in_box,
+    surface_metrics,
+)
+from chisel.eval.tables import (
+    METRIC_KEYS,
+    METRICS_FORMAT,
+    aggregate_seeds,
+    assemble_table,
     metrics_to_csv,
     metrics_to_markdown,
     read_metrics,
     read_sweep_csv,
-    render_depths,
-    sample_surface_in_box,
-    surface_metrics,
     tabulate_sweep,
-    true_change_masks,
-    true_change_masks_from_depths,
     validate_metrics,
     write_seed_table,
     write_sweep_csv,
     write_table,
 )
-from chisel.geometry import Camera, look_at
-from chisel.sequence import Frame, write_sequence
+from chisel.io.sequence import Frame, write_sequence
 
 CAM = Camera.from_fov(48, 36, 60)
 CFG = SurfaceMetricConfig(n_samples=4000, seed=3)

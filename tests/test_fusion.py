@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from chisel.errors import EmptyResultError, InvalidInputError, PoseError
+from chisel.core.errors import EmptyResultError, InvalidInputError, PoseError
+from chisel.core.geometry import Camera, invert_rigid, look_at
+from chisel.core.raycast import MeshRaycaster
 from chisel.fusion import check_pose_in_model, integrate
-from chisel.geometry import Camera, invert_rigid, look_at
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
-from chisel.raycast import MeshRaycaster
 
 R_MM = 12.0
 

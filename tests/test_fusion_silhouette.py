@@ -3,8 +3,8 @@
 import cv2
 import numpy as np
 
+from chisel.core.geometry import Camera
 from chisel.fusion import integrate
-from chisel.geometry import Camera
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from chisel import fusion
-from chisel.errors import InvalidInputError
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera, look_at
 from chisel.fusion import integrate
-from chisel.geometry import Camera, look_at
 from chisel.model import TsdfModel
 
 DIST = np.array([-0.12, 0.03, 0.002, -0.001, 0.0])

@@ -5,8 +5,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from chisel.errors import CameraError, PoseError
-from chisel.geometry import (
+from chisel.core.errors import CameraError, PoseError
+from chisel.core.geometry import (
     Camera,
     check_rigid,
     invert_rigid,

@@ -22,11 +22,11 @@ from test_import_scene import (
     write_video,
 )
 
-from chisel.calibration import read_calibration, write_opencv_calibration
 from chisel.cli import main as chisel_main
-from chisel.errors import InvalidInputError, PoseError
-from chisel.geometry import Camera, make_transform, rotation_angle_deg
-from chisel.importers import (
+from chisel.core.errors import InvalidInputError, PoseError
+from chisel.core.geometry import Camera, make_transform, rotation_angle_deg
+from chisel.io.calibration import read_calibration, write_opencv_calibration
+from chisel.io.importers import (
     FrameConfig,
     PoseConfig,
     import_images,
@@ -35,8 +35,8 @@ from chisel.importers import (
     match_poses_by_time,
     read_pose_file,
 )
-from chisel.sequence import Sequence
-from chisel.undistort import circle_mask, make_undistortion
+from chisel.io.sequence import Sequence
+from chisel.io.undistort import circle_mask, make_undistortion
 
 
 @pytest.fixture(scope="module")

@@ -16,9 +16,9 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from chisel.geometry import Camera, invert_rigid, look_at, make_transform
-from chisel.raycast import MeshRaycaster
-from chisel.undistort import Circle, circle_mask
+from chisel.core.geometry import Camera, invert_rigid, look_at, make_transform
+from chisel.core.raycast import MeshRaycaster
+from chisel.io.undistort import Circle, circle_mask
 
 SPHERE_CENTRE_MM = np.array([12.0, -7.0, 60.0])
 SPHERE_RADIUS_MM = 30.0

@@ -3,7 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chisel.errors import FormatVersionError, InvalidInputError
+from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.model import MODEL_FORMAT, TsdfModel
 
 

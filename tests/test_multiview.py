@@ -14,11 +14,11 @@ from test_updater_scenes import (
 )
 
 from chisel.change import ChangeConfig, frame_threshold, multiview_support
+from chisel.core.errors import InvalidInputError
+from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth, SequenceDepth
-from chisel.errors import InvalidInputError
+from chisel.io.sequence import Frame, write_sequence
 from chisel.mesh import extract_mesh
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame, write_sequence
 from chisel.updater import BuildConfig, UpdateConfig, build_preop_model, update_step
 
 SINGLE = ChangeConfig(min_views=0, noise_k=0.0)

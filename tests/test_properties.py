@@ -15,9 +15,9 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from chisel.geometry import Camera, check_rigid, invert_rigid, make_transform, transform_points
-from chisel.importers import match_poses_by_time
-from chisel.undistort import Circle, circle_mask, fit_field_stop, make_undistortion
+from chisel.core.geometry import Camera, check_rigid, invert_rigid, make_transform, transform_points
+from chisel.io.importers import match_poses_by_time
+from chisel.io.undistort import Circle, circle_mask, fit_field_stop, make_undistortion
 
 # derandomize: CI runs the same examples every time (the project wants reproducible runs).
 SETTINGS = settings(
@@ -182,8 +182,8 @@ _HAS_FUSION = importlib.util.find_spec("chisel.fusion") is not None
 @SETTINGS
 @given(seeds, st.floats(0.5, 2.0), st.floats(0.0, 0.4))
 def test_fusion_of_random_depth_stays_finite_and_bounded(seed, trunc_factor, invalid_frac) -> None:
+    from chisel.core.geometry import look_at
     from chisel.fusion import integrate
-    from chisel.geometry import look_at
     from chisel.model import TsdfModel
 
     rng = np.random.default_rng(seed)

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from chisel.errors import InvalidInputError
-from chisel.geometry import Camera, look_at
-from chisel.mitsuba_variant import jit_mitsuba
-from chisel.raycast import MeshRaycaster
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera, look_at
+from chisel.core.mitsuba_variant import jit_mitsuba
+from chisel.core.raycast import MeshRaycaster
 
 BACKENDS = ["open3d", "mitsuba"] if jit_mitsuba() is not None else ["open3d"]
 

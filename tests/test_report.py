@@ -12,18 +12,13 @@ import pytest
 import trimesh
 
 from chisel.cli import main as cli_main
-from chisel.errors import FormatVersionError, InvalidInputError
-from chisel.evaluate import (
-    METRIC_KEYS,
+from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.core.geometry import Camera, look_at
+from chisel.core.raycast import MeshRaycaster
+from chisel.eval.metrics import (
     RoiBox,
-    assemble_table,
-    tabulate_sweep,
-    write_sweep_csv,
-    write_table,
 )
-from chisel.geometry import Camera, look_at
-from chisel.raycast import MeshRaycaster
-from chisel.report import (
+from chisel.eval.report import (
     ReportMeshes,
     StepPanel,
     build_report_html,
@@ -34,6 +29,13 @@ from chisel.report import (
     read_panels,
     write_panels,
     write_report,
+)
+from chisel.eval.tables import (
+    METRIC_KEYS,
+    assemble_table,
+    tabulate_sweep,
+    write_sweep_csv,
+    write_table,
 )
 
 CHROMIUM = "/usr/bin/chromium"

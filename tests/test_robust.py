@@ -29,9 +29,8 @@ from test_import_scene import (
     write_video,
 )
 
-from chisel.calibration import read_calibration, write_opencv_calibration
 from chisel.cli import main as chisel_main
-from chisel.errors import (
+from chisel.core.errors import (
     CameraError,
     DepthUnitsError,
     EmptyResultError,
@@ -40,8 +39,9 @@ from chisel.errors import (
     OutputError,
     PoseError,
 )
-from chisel.geometry import Camera
-from chisel.importers import (
+from chisel.core.geometry import Camera
+from chisel.io.calibration import read_calibration, write_opencv_calibration
+from chisel.io.importers import (
     FrameConfig,
     PoseConfig,
     import_images,
@@ -50,7 +50,7 @@ from chisel.importers import (
     load_npy,
     read_pose_file,
 )
-from chisel.sequence import Sequence, write_sequence
+from chisel.io.sequence import Sequence, write_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 NO_STOP = FrameConfig(field_stop="none")
@@ -367,7 +367,8 @@ def test_field_stop_that_keeps_nothing(data) -> None:
 
 
 def test_empty_roi() -> None:
-    from chisel.evaluate import RoiBox, sample_surface_in_box
+    from chisel.eval.metrics import RoiBox
+    from chisel.eval.surface import sample_surface_in_box
 
     with pytest.raises(InvalidInputError, match=r"--roi: max corner .* must exceed min corner"):
         RoiBox.parse("0,0,0,10,-5,10")
@@ -428,7 +429,7 @@ def test_reference_layout_errors(scene, tmp_path) -> None:
 
 
 def test_sequence_from_another_version(scene, tmp_path) -> None:
-    from chisel.sequence import Frame
+    from chisel.io.sequence import Frame
 
     write_sequence(tmp_path / "seq", RAW_CAMERA, [Frame(0, scene.poses[0])])
     header = json.loads((tmp_path / "seq" / "sequence.json").read_text())
@@ -459,8 +460,8 @@ def test_ct_mesh_that_is_not_closed(tmp_path) -> None:
     """An open CT surface (cropped segmentation) is accepted: the preoperative model is
     fused from depth rendered off the surface, which needs no closed mesh. Only what the
     mesh has is modelled; looking through a hole sees nothing there."""
-    from chisel.ct import load_ct_surface
-    from chisel.geometry import look_at
+    from chisel.core.geometry import look_at
+    from chisel.io.ct import load_ct_surface
     from chisel.updater import BuildConfig, build_preop_model
 
     sphere = trimesh.creation.icosphere(3, radius=20.0)
@@ -523,7 +524,7 @@ def test_disk_full_keeps_the_previous_output(scene, data, monkeypatch, where) ->
         for p in (data / "seq").rglob("*")
         if p.is_file()
     }
-    import chisel.sequence as seqmod
+    import chisel.io.sequence as seqmod
 
     calls = {"n": 0}
     if where == "np.save":
@@ -560,7 +561,7 @@ def test_disk_full_keeps_the_previous_output(scene, data, monkeypatch, where) ->
 
 
 def test_cli_turns_disk_full_into_an_error_message(data, monkeypatch, capsys) -> None:
-    import chisel.sequence as seqmod
+    import chisel.io.sequence as seqmod
 
     argv = [
         "import",

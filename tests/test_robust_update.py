@@ -19,10 +19,10 @@ import pytest
 import trimesh
 from test_import_scene import SPHERE_CENTRE_MM, make_poses
 
-from chisel.geometry import Camera
+from chisel.core.geometry import Camera
+from chisel.core.raycast import MeshRaycaster
+from chisel.io.sequence import Frame, write_sequence
 from chisel.model import TsdfModel
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame, write_sequence
 from chisel.updater import BuildConfig, build_preop_model
 
 REPO = Path(__file__).resolve().parents[1]

@@ -3,9 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from chisel.errors import DepthUnitsError, FormatVersionError, InvalidInputError, PoseError
-from chisel.geometry import Camera, look_at
-from chisel.sequence import Frame, Sequence, SequenceWriter, check_depth_mm, write_sequence
+from chisel.core.errors import DepthUnitsError, FormatVersionError, InvalidInputError, PoseError
+from chisel.core.geometry import Camera, look_at
+from chisel.io.sequence import Frame, Sequence, SequenceWriter, check_depth_mm, write_sequence
 
 
 def make_frames(cam: Camera, n: int, seed: int = 0) -> list[Frame]:
@@ -105,7 +105,7 @@ def test_atomic_files_get_normal_permissions(tmp_path) -> None:
     import os
     import stat
 
-    from chisel.atomic import atomic_write_text
+    from chisel.core.atomic import atomic_write_text
 
     atomic_write_text(tmp_path / "a.txt", "x")
     umask = os.umask(0)

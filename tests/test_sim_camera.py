@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from chisel import mitsuba_variant as variant_mod
-from chisel.errors import CameraError, PoseError
-from chisel.geometry import Camera, look_at, transform_points
-from chisel.raycast import MeshRaycaster
+from chisel.core import mitsuba_variant as variant_mod
+from chisel.core.errors import CameraError, PoseError
+from chisel.core.geometry import Camera, look_at, transform_points
+from chisel.core.raycast import MeshRaycaster
 from sim.config import CameraConfig, SimConfig, replace_in
 from sim.errors import ConfigError, VariantError
 from sim.mitsuba_camera import (

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from chisel.errors import PoseError
-from chisel.geometry import invert_rigid, transform_points
+from chisel.core.errors import PoseError
+from chisel.core.geometry import invert_rigid, transform_points
 from sim.collision import TissueDistance
 from sim.config import PathConfig, SimConfig, TrackingConfig
 from sim.errors import MeshError, PathError, PathInTissueError, PhantomError

@@ -15,9 +15,9 @@ import pytest
 import trimesh
 import yaml
 
-from chisel.geometry import look_at
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Sequence
+from chisel.core.geometry import look_at
+from chisel.core.raycast import MeshRaycaster
+from chisel.io.sequence import Sequence
 from sim.appearance import randomize, texture_volume
 from sim.cli import main
 from sim.config import (

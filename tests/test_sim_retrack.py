@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from chisel.errors import InvalidInputError
-from chisel.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
-from chisel.sequence import Frame, Sequence, write_sequence
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
+from chisel.io.sequence import Frame, Sequence, write_sequence
 from sim.cli import main as sim_main
 
 

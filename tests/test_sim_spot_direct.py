@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from chisel.geometry import Camera, look_at, make_transform
-from chisel.mitsuba_variant import load_mitsuba
-from chisel.raycast import MeshRaycaster
+from chisel.core.geometry import Camera, look_at, make_transform
+from chisel.core.mitsuba_variant import load_mitsuba
+from chisel.core.raycast import MeshRaycaster
 from sim.appearance import texture_volume
 from sim.collision import TissueDistance
 from sim.config import ImagingConfig, SimConfig, replace_in

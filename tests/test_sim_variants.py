@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chisel.mitsuba_variant import _gpu_present, probe_variant
-from chisel.sequence import Sequence
+from chisel.core.mitsuba_variant import _gpu_present, probe_variant
+from chisel.io.sequence import Sequence
 from sim.synthetic import write_toy_phantom
 
 REPO = Path(__file__).resolve().parents[1]

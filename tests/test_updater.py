@@ -18,8 +18,7 @@ from test_updater_scenes import (
 )
 
 from chisel.change import ChangeConfig
-from chisel.depth_source import CallableDepth, GroundTruthDepth
-from chisel.errors import (
+from chisel.core.errors import (
     CameraError,
     ChiselError,
     DepthUnitsError,
@@ -27,12 +26,13 @@ from chisel.errors import (
     InvalidInputError,
     PoseError,
 )
-from chisel.geometry import invert_rigid, rotation_angle_deg
+from chisel.core.geometry import invert_rigid, rotation_angle_deg
+from chisel.core.raycast import MeshRaycaster
+from chisel.depth_source import CallableDepth, GroundTruthDepth
+from chisel.io.sequence import Frame
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
-from chisel.raycast import MeshRaycaster
 from chisel.registration import RegistrationConfig
-from chisel.sequence import Frame
 from chisel.updater import (
     BuildConfig,
     ChiselUpdater,

@@ -10,11 +10,11 @@ import trimesh
 from test_updater_scenes import bitten_mesh, camera, poses, preop_poses, tissue_mesh
 
 from chisel.cli import main
-from chisel.ct import load_ct_surface, surface_from_volume
-from chisel.errors import EmptyResultError, InvalidInputError
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.raycast import MeshRaycaster
+from chisel.io.ct import load_ct_surface, surface_from_volume
+from chisel.io.sequence import Frame, Sequence, write_sequence
 from chisel.model import TsdfModel
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame, Sequence, write_sequence
 
 
 def _write(path: Path, mesh: trimesh.Trimesh, P: np.ndarray, scale: float = 1.0) -> Path:

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from chisel.geometry import Camera, look_at, make_transform
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame
+from chisel.core.geometry import Camera, look_at, make_transform
+from chisel.core.raycast import MeshRaycaster
+from chisel.io.sequence import Frame
 
 ROOM_LO = np.array([-15.0, -12.0, -10.0])
 ROOM_HI = np.array([15.0, 12.0, 25.0])

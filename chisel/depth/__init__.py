@@ -36,7 +36,7 @@ from chisel.depth.infer import (
 )
 from chisel.depth.losses import depth_loss, gradient_matching_loss, scale_invariant_log_loss
 from chisel.depth.metrics import DepthMetrics, MetricAccumulator, frame_metrics
-from chisel.depth.model import DepthNet, DepthNetConfig, DepthPredictor
+from chisel.depth.network import DepthNet, DepthNetConfig, DepthPredictor
 from chisel.depth.train import TrainConfig, TrainResult, evaluate_frames, train
 
 DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoints") / "default.pt"

@@ -17,9 +17,9 @@ from typing import Any
 
 import torch
 
-from chisel.atomic import atomic_path, atomic_write_text
-from chisel.depth.model import DepthNet, DepthNetConfig
-from chisel.errors import FormatVersionError, InvalidInputError
+from chisel.core.atomic import atomic_path, atomic_write_text
+from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.depth.network import DepthNet, DepthNetConfig
 
 CHECKPOINT_FORMAT = "endoscopic-chisel/depth-checkpoint"
 CHECKPOINT_VERSION = 1

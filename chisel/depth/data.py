@@ -1,6 +1,6 @@
 """Training data for the depth network: sequence folders -> in-memory frame tensors.
 
-Inputs are sequence folders (``chisel.sequence``) with RGB and depth, named directly or
+Inputs are sequence folders (``chisel.io.sequence``) with RGB and depth, named directly or
 through a dataset index ``dataset.json`` (as written by ``python -m sim dataset``) that
 lists sequence folders with the phantom seed each was rendered from. Splits are made by
 phantom seed so that no phantom is seen in both training and validation; phantom seeds
@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 import torch
 
-from chisel.errors import EmptyResultError, InvalidInputError
-from chisel.sequence import Sequence
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
 

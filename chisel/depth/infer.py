@@ -1,6 +1,6 @@
 """Running a trained depth network: the updater's depth source, prediction, export.
 
-A *depth source* is any callable ``(frame: chisel.sequence.Frame) -> (H, W) float32``
+A *depth source* is any callable ``(frame: chisel.io.sequence.Frame) -> (H, W) float32``
 depth (NaN = invalid, possibly up to scale). :func:`load_depth_source` turns a checkpoint
 (``.pt`` from ``chisel depth train``) or an exported TorchScript file into one.
 """
@@ -17,13 +17,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from chisel.atomic import atomic_path
+from chisel.core.atomic import atomic_path
+from chisel.core.errors import InvalidInputError
 from chisel.depth.checkpoint import CheckpointError, load_checkpoint
 from chisel.depth.metrics import DepthMetrics, MetricAccumulator
-from chisel.depth.model import DepthPredictor
+from chisel.depth.network import DepthPredictor
 from chisel.depth.train import resolve_device
-from chisel.errors import InvalidInputError
-from chisel.sequence import Frame, Sequence, SequenceWriter
+from chisel.io.sequence import Frame, Sequence, SequenceWriter
 
 log = logging.getLogger(__name__)
 

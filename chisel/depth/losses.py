@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from chisel.errors import InvalidInputError
+from chisel.core.errors import InvalidInputError
 
 
 def _check(log_pred: torch.Tensor, log_gt: torch.Tensor, valid: torch.Tensor) -> None:

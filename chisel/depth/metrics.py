@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chisel.errors import EmptyResultError, InvalidInputError
+from chisel.core.errors import EmptyResultError, InvalidInputError
 
 DELTA_THRESHOLD = 1.25
 

@@ -1,7 +1,7 @@
 """Training and per-patient fine-tuning of the depth network on in-memory frames.
 
 Pure functions over :class:`~chisel.depth.data.FrameSet` tensors; reading sequences and
-writing checkpoints live in ``chisel.commands.depth``. Seeded end to end: the weights
+writing checkpoints live in ``chisel.cli.cmd_depth``. Seeded end to end: the weights
 init (``torch.manual_seed``), the shuffling and the augmentation (a ``torch.Generator``)
 all derive from ``TrainConfig.seed``, with ``torch.use_deterministic_algorithms`` on, so
 the same data, config and thread count give the same weights.
@@ -21,11 +21,11 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
+from chisel.core.errors import InvalidInputError
 from chisel.depth.data import AugmentConfig, FrameSet, augment, downsample_targets
 from chisel.depth.losses import depth_loss
 from chisel.depth.metrics import DepthMetrics, MetricAccumulator
-from chisel.depth.model import DepthNet, DepthNetConfig, DepthPredictor
-from chisel.errors import InvalidInputError
+from chisel.depth.network import DepthNet, DepthNetConfig, DepthPredictor
 
 log = logging.getLogger(__name__)
 

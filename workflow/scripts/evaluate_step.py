@@ -1,9 +1,14 @@
-"""Snakemake wrapper: score one surgical step (chisel.evaluate.evaluate_step)."""
+"""Snakemake wrapper: score one surgical step (chisel.eval.step.evaluate_step)."""
 
 import json
 import logging
 
-from chisel.evaluate import evaluate_step, write_step_metrics
+from chisel.eval.step import (
+    evaluate_step,
+)
+from chisel.eval.tables import (
+    write_step_metrics,
+)
 
 sm = snakemake  # noqa: F821 - injected by Snakemake
 logging.basicConfig(

@@ -1,12 +1,12 @@
-"""Snakemake wrapper: Figure-4 panels (chisel.report.make_step_panel) for every step."""
+"""Snakemake wrapper: Figure-4 panels (chisel.eval.report.make_step_panel) for every step."""
 
 import logging
 
 import numpy as np
 import trimesh
 
-from chisel.report import make_step_panel, write_panels
-from chisel.sequence import Sequence
+from chisel.eval.report import make_step_panel, write_panels
+from chisel.io.sequence import Sequence
 
 sm = snakemake  # noqa: F821 - injected by Snakemake
 logging.basicConfig(filename=sm.log[0], level=logging.INFO)

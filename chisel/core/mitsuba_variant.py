@@ -22,7 +22,7 @@ import sys
 import warnings
 from types import ModuleType
 
-from chisel.errors import VariantError
+from chisel.core.errors import VariantError
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Real data in: endoscope video or frames + tracked poses + calibration -> a sequence.
 
-Everything a real dataset needs to become a sequence folder (``chisel.sequence``):
+Everything a real dataset needs to become a sequence folder (``chisel.io.sequence``):
 
 - frames from a video file (``cv2.VideoCapture``) or an image folder;
 - poses from a text file (N x 16 row-major 4x4, N blocks of 4 lines, or TUM
@@ -14,15 +14,15 @@ Everything a real dataset needs to become a sequence folder (``chisel.sequence``
   where ``P[i]`` is the i-th pose of the file (the tracked marker in tracker
   coordinates; with no hand-eye transform the file's poses are the camera's own);
 - intrinsics and distortion from an OpenCV / ROS / JSON calibration
-  (``chisel.calibration``); frames undistorted to a new pinhole camera and masked to
-  the endoscope's circular field stop (``chisel.undistort``), as the reference
+  (``chisel.io.calibration``); frames undistorted to a new pinhole camera and masked to
+  the endoscope's circular field stop (``chisel.io.undistort``), as the reference
   implementation's data are;
 - optional per-frame depth (``.npy`` float mm or 16-bit PNG times a scale) and
   per-frame validity masks (PNG; tools, blood);
 - the reference implementation's dataset layout (``input.json`` with ``preop_data`` and
   numbered steps), see :func:`import_reference`.
 
-Output goes through :class:`chisel.sequence.SequenceWriter`, so a failed import leaves
+Output goes through :class:`chisel.io.sequence.SequenceWriter`, so a failed import leaves
 no partial folder and keeps an earlier one. ``.npy`` files are never unpickled.
 """
 
@@ -41,12 +41,12 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from chisel.atomic import atomic_dir
-from chisel.calibration import Calibration, read_calibration
-from chisel.errors import CameraError, ChiselError, InvalidInputError, OutputError, PoseError
-from chisel.geometry import Camera, check_rigid
-from chisel.sequence import Frame, SequenceWriter, check_depth_mm
-from chisel.undistort import (
+from chisel.core.atomic import atomic_dir
+from chisel.core.errors import CameraError, ChiselError, InvalidInputError, OutputError, PoseError
+from chisel.core.geometry import Camera, check_rigid
+from chisel.io.calibration import Calibration, read_calibration
+from chisel.io.sequence import Frame, SequenceWriter, check_depth_mm
+from chisel.io.undistort import (
     Circle,
     Undistortion,
     check_lens_model,
@@ -295,7 +295,7 @@ def read_depth(path: str | Path, scale_mm: float = 1.0) -> np.ndarray:
     """(H, W) float32 z-depth in mm (NaN invalid) from ``.npy`` or a 16-bit PNG.
 
     The stored values times ``scale_mm`` must be mm; 0, negative and NaN are invalid.
-    Raises :class:`~chisel.errors.DepthUnitsError` for depth that reads as metres.
+    Raises :class:`~chisel.core.errors.DepthUnitsError` for depth that reads as metres.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -699,7 +699,7 @@ def import_frames(
 
     Per-frame depth files (``depth_dir``) and mask PNGs (``mask_dir``) are taken in natural
     order, one per source frame, on the raw image grid. Raises a
-    :class:`~chisel.errors.InvalidInputError` subclass naming the file on any bad input;
+    :class:`~chisel.core.errors.InvalidInputError` subclass naming the file on any bad input;
     ``out_path`` is then left as it was.
     """
     pose_cfg = pose_cfg or PoseConfig()

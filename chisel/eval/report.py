@@ -5,10 +5,10 @@ plotly.js bundle is embedded once in ``<head>``, images are base64 PNGs, and the
 is a plotly ``Mesh3d`` of decimated meshes. Sections, each shown when its input is given:
 
 - the paper's table (correspondence error mean ± std (n) per step x method) and the surface
-  metrics table, from ``metrics.json`` (:mod:`chisel.evaluate`);
+  metrics table, from ``metrics.json`` (:mod:`chisel.eval.tables`);
 - error against step, one line per method (error bars = std);
 - sweeps: error at the last step against a swept parameter (sequence length, pose noise,
-  depth noise, ...), from sweep CSVs (:func:`chisel.evaluate.write_sweep_csv`);
+  depth noise, ...), from sweep CSVs (:func:`chisel.eval.tables.write_sweep_csv`);
 - per-step panels like the paper's Figure 4: frame RGB, preoperative depth, GT depth,
   estimated depth, updated-model depth (one shared colour range per panel) and the change
   mask; stored in a *panels file* (npz, see :func:`write_panels`);
@@ -35,20 +35,24 @@ import plotly.io as pio
 import plotly.offline
 import trimesh
 
-from chisel.atomic import atomic_path, atomic_write_text
-from chisel.errors import FormatVersionError, InvalidInputError
-from chisel.evaluate import (
-    METRIC_KEYS,
+from chisel.core.atomic import atomic_path, atomic_write_text
+from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.core.geometry import Camera
+from chisel.core.raycast import MeshRaycaster
+from chisel.eval.metrics import (
     RoiBox,
-    SweepTable,
+)
+from chisel.eval.surface import (
     point_to_mesh_distance,
+)
+from chisel.eval.tables import (
+    METRIC_KEYS,
+    SweepTable,
     table_methods,
     validate_metrics,
 )
-from chisel.geometry import Camera
-from chisel.raycast import MeshRaycaster
-from chisel.sequence import Frame as SeqFrame
-from chisel.sequence import depth_from_disk, depth_to_disk
+from chisel.io.sequence import Frame as SeqFrame
+from chisel.io.sequence import depth_from_disk, depth_to_disk
 
 log = logging.getLogger(__name__)
 

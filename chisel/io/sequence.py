@@ -29,15 +29,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from chisel.atomic import atomic_dir
-from chisel.errors import (
+from chisel.core.atomic import atomic_dir
+from chisel.core.errors import (
     CameraError,
     DepthUnitsError,
     FormatVersionError,
     InvalidInputError,
     PoseError,
 )
-from chisel.geometry import Camera, check_rigid
+from chisel.core.geometry import Camera, check_rigid
 
 SEQUENCE_FORMAT = "endoscopic-chisel/sequence"
 SEQUENCE_VERSION = 1

@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from chisel.cliargs import Output, finite_float
+from chisel.cli.args import Output, finite_float
 from chisel.depth import (
     DEFAULT_CHECKPOINT,
     DepthNetConfig,
@@ -34,7 +34,7 @@ from chisel.depth import (
 )
 from chisel.depth.checkpoint import sidecar_path
 from chisel.depth.data import AugmentConfig, SequenceRef
-from chisel.sequence import Sequence
+from chisel.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
 

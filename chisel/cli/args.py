@@ -16,8 +16,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from chisel.atomic import overlap
-from chisel.errors import InvalidInputError
+from chisel.core.atomic import overlap
+from chisel.core.errors import InvalidInputError
 
 Sidecar = Callable[[argparse.Namespace], Path | None]
 

@@ -1,4 +1,4 @@
-"""Camera calibration files -> :class:`chisel.geometry.Camera`.
+"""Camera calibration files -> :class:`chisel.core.geometry.Camera`.
 
 Formats read (see docs/real-data.md):
 
@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 import yaml
 
-from chisel.errors import CameraError
-from chisel.geometry import Camera
+from chisel.core.errors import CameraError
+from chisel.core.geometry import Camera
 
 _K_KEYS = ("camera_matrix", "K", "cameraMatrix", "intrinsic_matrix")
 _DIST_KEYS = ("distortion_coefficients", "dist", "D", "distCoeffs", "dist_coeffs")

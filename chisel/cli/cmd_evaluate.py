@@ -6,15 +6,21 @@ import argparse
 import logging
 from pathlib import Path
 
-from chisel.cliargs import Output, finite_float
-from chisel.errors import InvalidInputError
-from chisel.evaluate import (
+from chisel.cli.args import Output, finite_float
+from chisel.core.errors import InvalidInputError
+from chisel.eval.metrics import (
     RoiBox,
-    SurfaceMetricConfig,
-    aggregate_seeds,
-    assemble_table,
+)
+from chisel.eval.step import (
     evaluate_step,
     load_mesh,
+)
+from chisel.eval.surface import (
+    SurfaceMetricConfig,
+)
+from chisel.eval.tables import (
+    aggregate_seeds,
+    assemble_table,
     read_metrics,
     read_step_metrics,
     read_sweep_csv,
@@ -125,7 +131,7 @@ def _run_sweep(args: argparse.Namespace) -> int:
 
 def _run_report(args: argparse.Namespace) -> int:
     # Imported here: plotly is only needed for the report.
-    from chisel.report import ReportMeshes, read_panels, write_report
+    from chisel.eval.report import ReportMeshes, read_panels, write_report
 
     metrics = read_metrics(args.metrics)
     panels = read_panels(args.panels) if args.panels else None
@@ -215,7 +221,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "plots, per-step depth panels and a 3D view of the preoperative and updated meshes.",
     )
     r.add_argument("--metrics", type=Path, required=True, help="metrics.json")
-    r.add_argument("--panels", type=Path, help="panels .npz (chisel.report.write_panels)")
+    r.add_argument("--panels", type=Path, help="panels .npz (chisel.eval.report.write_panels)")
     r.add_argument("--preop-mesh", type=Path, help="preoperative model mesh (3D view)")
     r.add_argument("--updated-mesh", type=Path, help="updated model mesh (3D view)")
     r.add_argument(

@@ -6,8 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from chisel.cliargs import Output, finite_float
-from chisel.importers import (
+from chisel.cli.args import Output, finite_float
+from chisel.io.importers import (
     FrameConfig,
     PoseConfig,
     import_images,
@@ -15,7 +15,7 @@ from chisel.importers import (
     import_video,
     read_transform,
 )
-from chisel.undistort import Circle
+from chisel.io.undistort import Circle
 
 log = logging.getLogger(__name__)
 

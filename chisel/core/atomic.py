@@ -16,7 +16,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Literal
 
-from chisel.errors import InvalidInputError
+from chisel.core.errors import InvalidInputError
 
 
 def check_writable_parent(path: Path) -> None:

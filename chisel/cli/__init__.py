@@ -14,20 +14,20 @@ import importlib
 import logging
 import sys
 
-from chisel.cliargs import check_outputs
-from chisel.errors import run_command
+from chisel.cli.args import check_outputs
+from chisel.core.errors import run_command
 
 _COMMANDS: dict[str, str] = {
     # command -> "module.path" providing register(subparsers: argparse._SubParsersAction)
-    "import": "chisel.commands.importers",
-    "depth": "chisel.commands.depth",
-    "evaluate": "chisel.commands.evaluate",
-    "report": "chisel.commands.evaluate",
-    "ct-surface": "chisel.commands.model",
-    "build": "chisel.commands.model",
-    "update": "chisel.commands.model",
-    "mesh": "chisel.commands.model",
-    "render-depth": "chisel.commands.model",
+    "import": "chisel.cli.cmd_import",
+    "depth": "chisel.cli.cmd_depth",
+    "evaluate": "chisel.cli.cmd_evaluate",
+    "report": "chisel.cli.cmd_evaluate",
+    "ct-surface": "chisel.cli.cmd_model",
+    "build": "chisel.cli.cmd_model",
+    "update": "chisel.cli.cmd_model",
+    "mesh": "chisel.cli.cmd_model",
+    "render-depth": "chisel.cli.cmd_model",
 }
 
 _DESCRIPTION = """\

@@ -16,7 +16,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from chisel.errors import CameraError, PoseError
+from chisel.core.errors import CameraError, PoseError
 
 RIGID_TOL = 1e-5
 """Tolerance on ``R^T R - I`` and ``det(R) - 1`` for a pose to count as rigid."""

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from chisel.errors import CameraError, InvalidInputError
-from chisel.geometry import Camera
+from chisel.core.errors import CameraError, InvalidInputError
+from chisel.core.geometry import Camera
 
 FIELD_STOP_MIN_ARC_POINTS = 30
 """Fewest boundary pixels (away from the image border) a field-stop fit accepts."""

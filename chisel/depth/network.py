@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from chisel.errors import InvalidInputError
+from chisel.core.errors import InvalidInputError
 
 LOG_DEPTH_CLAMP = 12.0
 """Predicted log-depth is clamped to +-this before ``exp`` so depth stays finite (e^12 ~ 1.6e5)."""

@@ -23,8 +23,8 @@ from typing import Literal
 import numpy as np
 import trimesh
 
-from chisel.errors import EmptyResultError, InvalidInputError
-from chisel.geometry import transform_points
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.geometry import transform_points
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".glb")
 NIFTI_SUFFIXES = (".nii", ".nii.gz")

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from chisel.atomic import atomic_path, atomic_paths
-from chisel.cliargs import Output, finite_float
-from chisel.errors import InvalidInputError
+from chisel.cli.args import Output, finite_float
+from chisel.core.atomic import atomic_path, atomic_paths
+from chisel.core.errors import InvalidInputError
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +23,7 @@ _FMT = argparse.RawDescriptionHelpFormatter
 
 _FORMATS = """\
 Formats and units:
-  sequence folder  see chisel.sequence (sequence.json, poses.txt = tracked T_world_from_cam
+  sequence folder  see chisel.io.sequence (sequence.json, poses.txt = tracked T_world_from_cam
                    row-major 4x4 in mm, rgb/*.png, depth/*.npy float32 z-depth mm, 0 = invalid)
   model file       .npz, format "endoscopic-chisel/model" version 1: tsdf (X,Y,Z) float32
                    in [-1, 1] (signed distance / trunc_mm), weight (X,Y,Z) float32,
@@ -238,7 +238,7 @@ def _save_mesh(mesh, path: Path) -> None:  # noqa: ANN001 - trimesh.Trimesh
 
 
 def _cmd_ct_surface(args: argparse.Namespace) -> int:
-    from chisel.ct import load_ct_surface
+    from chisel.io.ct import load_ct_surface
 
     mesh = load_ct_surface(args.ct, args.kind, args.iso_level)
     _save_mesh(mesh, args.out)
@@ -247,8 +247,8 @@ def _cmd_ct_surface(args: argparse.Namespace) -> int:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
-    from chisel.ct import load_ct_surface
-    from chisel.sequence import Sequence
+    from chisel.io.ct import load_ct_surface
+    from chisel.io.sequence import Sequence
     from chisel.updater import BuildConfig, build_preop_model
 
     cfg = BuildConfig(
@@ -295,9 +295,9 @@ class _NoisyDepth:
 def _cmd_update(args: argparse.Namespace) -> int:
     from chisel.change import ChangeConfig
     from chisel.depth_source import depth_source_from_spec
+    from chisel.io.sequence import Sequence
     from chisel.model import TsdfModel
     from chisel.registration import RegistrationConfig
-    from chisel.sequence import Sequence
     from chisel.updater import UpdateConfig, update_step
 
     if args.max_frames is not None and args.max_frames < 1:
@@ -380,10 +380,10 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
 
 def _cmd_render_depth(args: argparse.Namespace) -> int:
-    from chisel.ct import load_ct_surface
+    from chisel.core.raycast import MeshRaycaster
+    from chisel.io.ct import load_ct_surface
+    from chisel.io.sequence import Frame, Sequence, SequenceWriter
     from chisel.model import TsdfModel
-    from chisel.raycast import MeshRaycaster
-    from chisel.sequence import Frame, Sequence, SequenceWriter
     from chisel.updater import ModelRenderer
 
     seq = Sequence(args.sequence)

@@ -10,7 +10,7 @@ Two back ends give the same depth (float32 Embree both; tested: median differenc
 - ``mitsuba``: Mitsuba's ray queries on a JIT variant (``llvm_ad_rgb`` on the CPU,
   ``cuda_ad_rgb`` on a GPU). drjit traces the rays of a frame as coherent packets, which
   is about 7x faster than Open3D on the 2-core CPU (docs/updater.md, "Speed"); the
-  default wherever a JIT variant passes the probe of :mod:`chisel.mitsuba_variant`.
+  default wherever a JIT variant passes the probe of :mod:`chisel.core.mitsuba_variant`.
 - ``open3d``: Open3D's ``RaycastingScene`` (one ray at a time), the fallback.
 """
 
@@ -21,8 +21,8 @@ from typing import Literal
 
 import numpy as np
 
-from chisel.errors import InvalidInputError
-from chisel.geometry import Camera, check_rigid
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera, check_rigid
 
 Backend = Literal["auto", "mitsuba", "open3d"]
 
@@ -74,14 +74,14 @@ def _resolve_backend(backend: Backend) -> tuple[str, ModuleType | None]:
         )
     if backend == "open3d":
         return "open3d", None
-    from chisel.mitsuba_variant import jit_mitsuba  # noqa: PLC0415 - imports mitsuba
+    from chisel.core.mitsuba_variant import jit_mitsuba  # noqa: PLC0415 - imports mitsuba
 
     mi = jit_mitsuba()
     if mi is not None:
         return "mitsuba", mi
     if backend == "mitsuba":
         raise InvalidInputError(
-            "backend", "no Mitsuba JIT variant works here (see chisel.mitsuba_variant)"
+            "backend", "no Mitsuba JIT variant works here (see chisel.core.mitsuba_variant)"
         )
     return "open3d", None
 

@@ -1,1 +1,0 @@
-"""CLI subcommand modules; each provides ``register(subparsers)`` (see ``chisel.cli``)."""

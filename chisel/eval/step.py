@@ -1,0 +1,323 @@
+"""One surgical step scored for every method: the file-level wrapper ``evaluate_step``
+and the cells it writes (docs/evaluation.md)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import trimesh
+
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera
+from chisel.eval.masks import (
+    CHANGE_THRESHOLD_MM,
+    MaskScores,
+    _check_masks,
+    mask_precision_recall,
+    true_change_masks,
+)
+from chisel.eval.metrics import (
+    CorrespondenceError,
+    RoiBox,
+    _check_mesh,
+    _check_poses,
+    correspondence_error,
+    render_depths,
+)
+from chisel.eval.surface import (
+    FSCORE_THRESHOLD_MM,
+    SurfaceMetricConfig,
+    SurfaceMetrics,
+    sample_surface_in_box,
+    surface_metrics,
+)
+from chisel.eval.tables import (
+    METRICS_VERSION,
+    STEP_METRICS_FORMAT,
+    step_label,
+)
+from chisel.io.sequence import Sequence as SequenceFolder
+
+log = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------------------
+# One step, all methods
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def method_cell(
+    corr: CorrespondenceError, surf: SurfaceMetrics, masks: MaskScores | None
+) -> dict[str, float | int | None]:
+    """One method's cell of ``metrics.json`` (every key of :data:`METRIC_KEYS`)."""
+    if surf.threshold_mm != FSCORE_THRESHOLD_MM:
+        raise InvalidInputError(
+            "surface metrics",
+            f"the table reports the F-score at {FSCORE_THRESHOLD_MM} mm, got {surf.threshold_mm} mm",
+        )
+    return {
+        "mean_mm": corr.mean_mm,
+        "std_mm": corr.std_mm,
+        "median_mm": corr.median_mm,
+        "n_points": corr.n_points,
+        "n_gt_in_box": corr.n_gt_in_box,
+        "missing_fraction": corr.missing_fraction,
+        "accuracy_mm": surf.accuracy_mm,
+        "completeness_mm": surf.completeness_mm,
+        "accuracy_hd95_mm": surf.accuracy_hd95_mm,
+        "completeness_hd95_mm": surf.completeness_hd95_mm,
+        "hd95_mm": surf.hd95_mm,
+        "chamfer_mm": surf.chamfer_mm,
+        "precision_1mm": surf.precision,
+        "recall_1mm": surf.recall,
+        "fscore_1mm": surf.fscore,
+        "mask_precision": None if masks is None else _finite_or_none(masks.precision),
+        "mask_recall": None if masks is None else _finite_or_none(masks.recall),
+    }
+
+
+@dataclass(frozen=True)
+class ChangeMaskInput:
+    """Predicted change masks of one method and the truth they are scored against."""
+
+    pred_masks: np.ndarray
+    """(N, H, W) bool, True = changed, one per frame of the step's update sequence."""
+    true_masks: np.ndarray
+    """(N, H, W) bool true change at the same poses (see :func:`true_change_masks`)."""
+    valid: np.ndarray | None = None
+    """(H, W) or (N, H, W) bool pixels to score (e.g. the camera mask), or None = all."""
+
+
+def evaluate_methods(
+    gt_mesh: trimesh.Trimesh,
+    method_meshes: Mapping[str, trimesh.Trimesh],
+    camera: Camera,
+    poses: np.ndarray,
+    box: RoiBox,
+    step: int,
+    cfg: SurfaceMetricConfig = SurfaceMetricConfig(),  # noqa: B008 - frozen, immutable
+    change_masks: Mapping[str, ChangeMaskInput] | None = None,
+    pixel_mask: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """Evaluate every method's mesh against the step's GT mesh; returns a step dict.
+
+    poses : (N, 4, 4) float64 evaluation ``T_world_from_cam`` viewing the box.
+    pixel_mask : (H, W) bool or None; False pixels never count in the correspondence error.
+    Returns ``{"step", "label", "methods": {name: cell}}`` (cells as in ``metrics.json``).
+    """
+    if not method_meshes:
+        raise InvalidInputError("method_meshes", "no method to evaluate")
+    if step < 0:
+        raise InvalidInputError("step", f"must be >= 0, got {step}")
+    unknown = set(change_masks or {}) - set(method_meshes)
+    if unknown:
+        raise InvalidInputError(
+            "change_masks", f"masks given for methods without a mesh: {sorted(unknown)}"
+        )
+    _check_mesh(gt_mesh, "gt_mesh")
+    poses = _check_poses(poses)
+    gt_depths = render_depths(gt_mesh, camera, poses)
+    gt_samples = sample_surface_in_box(gt_mesh, box, cfg.n_samples, cfg.seed, "gt_mesh")
+    methods: dict[str, Any] = {}
+    for name, mesh in method_meshes.items():
+        _check_mesh(mesh, f"method {name!r}")
+        corr = correspondence_error(
+            gt_depths,
+            render_depths(mesh, camera, poses),
+            camera,
+            poses,
+            box,
+            pixel_mask,
+            source=f"method {name!r}",
+        )
+        surf = surface_metrics(mesh, gt_mesh, box, cfg, gt_samples, source=f"method {name!r}")
+        masks = None
+        if change_masks and name in change_masks:
+            cm = change_masks[name]
+            masks = mask_precision_recall(cm.pred_masks, cm.true_masks, cm.valid)
+        methods[name] = method_cell(corr, surf, masks)
+        log.info(
+            "step %d %s: %.3f +- %.3f mm (n=%d), chamfer %.3f mm",
+            step,
+            name,
+            corr.mean_mm,
+            corr.std_mm,
+            corr.n_points,
+            surf.chamfer_mm,
+        )
+    return {"step": int(step), "label": step_label(step), "methods": methods}
+
+
+def protocol_dict(
+    box: RoiBox, cfg: SurfaceMetricConfig, n_poses: int, pose_source: str
+) -> dict[str, Any]:
+    """What a step was evaluated with (stored beside the numbers)."""
+    return {
+        "roi_box_mm": box.to_list(),
+        "n_eval_poses": int(n_poses),
+        "eval_poses": pose_source,
+        "surface_samples": int(cfg.n_samples),
+        "surface_seed": int(cfg.seed),
+        "fscore_threshold_mm": FSCORE_THRESHOLD_MM,
+        "change_threshold_mm": CHANGE_THRESHOLD_MM,
+        "std": "population (ddof=0)",
+    }
+
+
+# --------------------------------------------------------------------------------------
+# File-level wrapper
+
+
+def load_mesh(path: str | Path, source: str) -> trimesh.Trimesh:
+    """Read a triangle mesh (PLY/STL/OBJ) with trimesh; raise if missing, unreadable or empty."""
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(path, f"{source}: mesh file is missing")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
+        raise InvalidInputError(path, f"{source}: cannot read mesh: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InvalidInputError(path, f"{source}: mesh is empty (no triangles)")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise InvalidInputError(path, f"{source}: vertices contain NaN/inf")
+    return mesh
+
+
+def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -> np.ndarray:
+    """Read predicted change masks: an ``.npz`` with key ``masks`` or a folder of PNGs.
+
+    npz: ``masks`` (N, H, W) bool or uint8 (nonzero = changed), read without pickle; with
+    an optional ``frame_index`` (N,) int (as ``chisel update --masks`` writes), the masks are
+    placed at those frames of the sequence and the other frames count as unchanged.
+    Folder: ``000000.png`` ... one uint8 PNG per frame, 255 = changed.
+    Returns (N, H, W) bool, checked against ``n_frames`` and ``shape`` = (H, W).
+    """
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(path.glob("*.png"))
+        if not files:
+            raise InvalidInputError(path, "change-mask folder holds no PNG file")
+        masks = []
+        for f in files:
+            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise InvalidInputError(f, "cannot decode change-mask PNG")
+            masks.append(img > 127)
+        arr = np.stack(masks) if len({m.shape for m in masks}) == 1 else None
+        if arr is None:
+            raise InvalidInputError(path, "change-mask PNGs differ in size")
+    elif path.is_file():
+        try:
+            z = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise InvalidInputError(path, f"cannot read change masks (npz): {exc}") from None
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise InvalidInputError(path, "expected an .npz archive with key 'masks'")
+        with z:
+            if "masks" not in z.files:
+                raise InvalidInputError(path, f"expected key 'masks', found {z.files}")
+            arr = _check_masks(z["masks"], str(path))
+            if "frame_index" in z.files:
+                # `chisel update --masks` stores one mask per frame it considered, with the
+                # frame's index; frames it did not consider count as "no change".
+                idx = np.asarray(z["frame_index"], dtype=np.int64)
+                if idx.shape != (len(arr),) or (
+                    idx.size and (idx.min() < 0 or idx.max() >= n_frames)
+                ):
+                    raise InvalidInputError(
+                        path, f"frame_index must hold {len(arr)} indices in 0..{n_frames - 1}"
+                    )
+                full = np.zeros((n_frames, *arr.shape[1:]), dtype=bool)
+                full[idx] = arr
+                arr = full
+    else:
+        raise InvalidInputError(path, "change masks are missing (expected an .npz or a folder)")
+    if arr.shape != (n_frames, *shape):
+        raise InvalidInputError(
+            path,
+            f"expected {n_frames} masks of {shape[1]}x{shape[0]} (WxH), got shape {arr.shape}",
+        )
+    return arr
+
+
+def _eval_poses(seq: SequenceFolder) -> tuple[np.ndarray, str]:
+    # The protocol fixes exact camera poses: use the true ones when the sequence has them.
+    if seq.true_poses is not None:
+        return seq.true_poses, "poses_true.txt"
+    log.info("%s has no true poses; evaluating at its tracked poses", seq.path)
+    return seq.poses, "poses.txt"
+
+
+def evaluate_step(
+    gt_mesh_path: str | Path,
+    method_mesh_paths: Mapping[str, str | Path],
+    eval_sequence_path: str | Path,
+    roi_box_mm: RoiBox | Sequence[float],
+    step: int,
+    cfg: SurfaceMetricConfig = SurfaceMetricConfig(),  # noqa: B008 - frozen, immutable
+    change_mask_paths: Mapping[str, str | Path] | None = None,
+    change_sequence_path: str | Path | None = None,
+    prev_gt_mesh_path: str | Path | None = None,
+) -> dict[str, Any]:
+    """Evaluate one step from files; returns the step-metrics dict (see ``STEP_METRICS_SCHEMA``).
+
+    gt_mesh_path : the step's ground-truth mesh.  method_mesh_paths : name -> mesh file.
+    eval_sequence_path : sequence folder whose camera and poses are the evaluation poses
+    (true poses when present); its camera mask, if any, limits the counted pixels.
+    roi_box_mm : the ROI box, or six numbers xmin, ymin, zmin, xmax, ymax, zmax (mm).
+    change_mask_paths : name -> predicted change masks (see :func:`load_change_masks`) of the
+    step's update sequence ``change_sequence_path``; scored against the true change between
+    ``prev_gt_mesh_path`` (step t-1) and ``gt_mesh_path`` at that sequence's poses.
+    """
+    box = roi_box_mm if isinstance(roi_box_mm, RoiBox) else RoiBox.from_values(roi_box_mm)
+    if not method_mesh_paths:
+        raise InvalidInputError("method_mesh_paths", "no method to evaluate")
+    gt_mesh = load_mesh(gt_mesh_path, "ground-truth mesh")
+    meshes = {name: load_mesh(p, f"method {name!r}") for name, p in method_mesh_paths.items()}
+    seq = SequenceFolder(eval_sequence_path)
+    poses, pose_source = _eval_poses(seq)
+
+    change_inputs: dict[str, ChangeMaskInput] | None = None
+    if change_mask_paths:
+        if change_sequence_path is None or prev_gt_mesh_path is None:
+            raise InvalidInputError(
+                "change_mask_paths",
+                "scoring change masks needs change_sequence_path and prev_gt_mesh_path",
+            )
+        cseq = SequenceFolder(change_sequence_path)
+        cposes, _ = _eval_poses(cseq)
+        truth = true_change_masks(
+            load_mesh(prev_gt_mesh_path, "previous ground-truth mesh"), gt_mesh, cseq.camera, cposes
+        )
+        change_inputs = {}
+        for name, p in change_mask_paths.items():
+            if name not in meshes:
+                raise InvalidInputError(
+                    "change_mask_paths", f"masks for {name!r}, which has no mesh"
+                )
+            pred = load_change_masks(p, len(cseq), cseq.camera.shape)
+            change_inputs[name] = ChangeMaskInput(pred, truth, cseq.camera_mask)
+
+    result = evaluate_methods(
+        gt_mesh, meshes, seq.camera, poses, box, step, cfg, change_inputs, seq.camera_mask
+    )
+    return {
+        "format": STEP_METRICS_FORMAT,
+        "version": METRICS_VERSION,
+        **result,
+        "protocol": protocol_dict(box, cfg, len(poses), f"{seq.path}/{pose_source}"),
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Tables: assemble, validate, write
