@@ -63,7 +63,7 @@ def _cfg(dist: tuple | None) -> SimConfig:
 def test_depth_matches_open3d(dist: tuple) -> None:
     cfg = _cfg(dist)
     renderer = MeshRenderer(_mesh(), cfg, depth_only=True)
-    ref_caster = MeshRaycaster.from_trimesh(_mesh())
+    ref_caster = MeshRaycaster.from_trimesh(_mesh(), backend="open3d")
     depth = renderer.render_depth(np.stack(_poses()))
     for T, d in zip(_poses(), depth, strict=True):
         ref = ref_caster.render_depth(renderer.camera, T)
@@ -86,7 +86,7 @@ def test_sensor_depth_aov_matches_open3d(distorted: bool) -> None:
     cfg = _cfg(None if distorted else (0.0,) * 5)
     renderer = MeshRenderer(_mesh(), cfg, depth_only=True)
     renderer_rgb = MeshRenderer(_mesh(), replace_in(cfg, depth_only=False), texture=_texture())
-    ref_caster = MeshRaycaster.from_trimesh(_mesh())
+    ref_caster = MeshRaycaster.from_trimesh(_mesh(), backend="open3d")
     for T in _poses():
         d = renderer_rgb._depth_via_sensor(T)
         ref = ref_caster.render_depth(renderer.camera, T)

@@ -111,7 +111,7 @@ def test_rendered_depth_is_ground_truth_on_each_steps_mesh(rendered: tuple[Path,
     meshes = [load_mesh(phantom / f"meshes/step_{k:02d}.ply") for k in range(3)]
     for name, k in [("preop", 0), ("step_02", 2), ("eval/step_01", 1)]:
         seq = Sequence(out / name)
-        caster = MeshRaycaster.from_trimesh(meshes[k])
+        caster = MeshRaycaster.from_trimesh(meshes[k], backend="open3d")
         for i in (0, len(seq) - 1):
             ref = caster.render_depth(seq.camera, seq.true_poses[i])
             d = seq.depth_mm(i)
@@ -511,7 +511,9 @@ def test_scalar_variant_fallback_renders_depth_and_rgb(
     assert proc.returncode == 0, proc.stderr
     assert json.loads((out / "render.json").read_text())["variant"] == "scalar_rgb"
     seq = Sequence(out / "step_01")
-    caster = MeshRaycaster.from_trimesh(load_mesh(phantom / "meshes/step_01.ply"))
+    caster = MeshRaycaster.from_trimesh(
+        load_mesh(phantom / "meshes/step_01.ply"), backend="open3d"
+    )
     for i in range(2):
         d, ref = seq.depth_mm(i), caster.render_depth(seq.camera, seq.true_poses[i])
         both = np.isfinite(d) & np.isfinite(ref)
@@ -553,7 +555,7 @@ def test_end_to_end_with_real_phantom_generator(tmp_path: Path) -> None:
     assert [e["path"] for e in ds["sequences"]] == ["seed_0/preop", "seed_0/step_01"]
     phantom = json.loads((out / "phantoms/seed_0/phantom.json").read_text())
     caster = MeshRaycaster.from_trimesh(
-        load_mesh(out / "phantoms/seed_0" / phantom["steps"][1]["mesh"])
+        load_mesh(out / "phantoms/seed_0" / phantom["steps"][1]["mesh"]), backend="open3d"
     )
     seq = Sequence(out / "seed_0/step_01")
     for i in range(len(seq)):
