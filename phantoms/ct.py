@@ -16,13 +16,13 @@ Model (documented in ``docs/phantoms.md``, "CT volumes"):
   ramp and marching cubes at -480 HU places the surface exactly where it is (planar
   surfaces are reproduced exactly; curved ones to a small fraction of a voxel). Bone
   starts ``mucosa_mm - spacing/2`` deep, beyond the reach of those edges.
-* ``T_world_from_voxel`` (the NIfTI affine) maps voxel indices to voxel *centres* in the
-  phantom's world frame (mm); it is a pure scaling plus translation.
+* ``T_world_from_voxel`` maps voxel indices to voxel *centres* in the phantom's world
+  frame (LPS, mm); it is a pure scaling plus translation. The NIfTI files hold its RAS
+  form, ``diag(-1, -1, 1, 1) @ T_world_from_voxel`` (written by ``chisel.io.ct``).
 """
 
 from __future__ import annotations
 
-import gzip
 from dataclasses import dataclass
 
 import numpy as np
@@ -274,17 +274,14 @@ def nifti_gz_bytes(
 ) -> bytes:
     """A NIfTI-1 image, gzip-compressed with a zero mtime so equal volumes give equal bytes.
 
-    volume : (nx, ny, nz) uint8 or int16.  T_world_from_voxel : (4, 4) float, the affine.
+    volume : (nx, ny, nz) uint8 or int16.  T_world_from_voxel : (4, 4) float, voxel ->
+    the phantom's (LPS) world mm. Written by the project's one volume writer
+    (:func:`chisel.io.ct.nifti_bytes`): a RAS affine in sform and qform (code 1), as
+    NIfTI requires.
     """
-    import nibabel as nib
+    from chisel.io.ct import nifti_bytes
 
-    img = nib.Nifti1Image(np.asarray(volume), np.asarray(T_world_from_voxel, float))
-    img.header.set_xyzt_units("mm")
-    img.set_sform(T_world_from_voxel, code=2)  # aligned to the phantom's world frame (not RAS)
-    img.set_qform(T_world_from_voxel, code=2)
-    if description:
-        img.header["descrip"] = description.encode("ascii")[:79]
-    return gzip.compress(img.to_bytes(), compresslevel=6, mtime=0)
+    return nifti_bytes(np.asarray(volume), T_world_from_voxel, description=description)
 
 
 def bbox_voxels(grid: CTGrid, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

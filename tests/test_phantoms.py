@@ -12,12 +12,12 @@ import json
 from pathlib import Path
 
 import manifold3d as m3d
-import nibabel as nib
 import numpy as np
 import pytest
 import trimesh
 from skimage.measure import marching_cubes
 
+from chisel.io.ct import read_ct_volume
 from phantoms.anatomy import manifold_from_arrays
 from phantoms.cli import main
 from phantoms.ct import SurfaceDistance
@@ -59,8 +59,8 @@ def _mesh(folder: Path, rel: str) -> trimesh.Trimesh:
 
 
 def _volume(folder: Path, rel: str) -> np.ndarray:
-    img = nib.load(folder / rel)
-    return np.asarray(img.dataobj), img.affine
+    vol = read_ct_volume(folder / rel)  # the NIfTI's RAS affine, back in the LPS world
+    return vol.data, vol.T_world_from_voxel
 
 
 def test_manifest_follows_the_contract(default_dir, manifest):

@@ -188,11 +188,13 @@ def test_nifti_bytes_are_deterministic_and_carry_the_affine():
     assert a == nifti_gz_bytes(vol, grid.T_world_from_voxel)
     assert a[4:8] == b"\x00\x00\x00\x00"  # gzip header mtime
     img = nib.Nifti1Image.from_bytes(gzip.decompress(a))
-    assert np.allclose(img.affine, grid.T_world_from_voxel)
+    ras_from_lps = np.diag([-1.0, -1.0, 1.0, 1.0])  # NIfTI's world is RAS, the phantom's LPS
+    assert np.allclose(img.affine, ras_from_lps @ grid.T_world_from_voxel)
     assert np.array_equal(np.asarray(img.dataobj), vol)
     # voxel (i, j, k) -> its centre
     assert np.allclose(
-        img.affine @ [2, 3, 4, 1], [*(np.asarray(grid.origin_mm) + 0.5 * np.array([2, 3, 4])), 1]
+        ras_from_lps @ img.affine @ [2, 3, 4, 1],
+        [*(np.asarray(grid.origin_mm) + 0.5 * np.array([2, 3, 4])), 1],
     )
 
 

@@ -157,7 +157,7 @@ def test_ct_surface_from_nifti(tmp_path: Path, kind: str) -> None:
     )
     nib.save(nib.Nifti1Image(vol, affine), tmp_path / "ct.nii.gz")
     mesh = load_ct_surface(tmp_path / "ct.nii.gz")
-    r = np.linalg.norm(mesh.vertices - centre, axis=1)
+    r = np.linalg.norm(mesh.vertices - centre * [-1, -1, 1], axis=1)  # RAS file -> LPS world
     assert abs(np.median(r) - 12.0) < 0.35 and r.max() - r.min() < 1.5
     assert (
         main(["ct-surface", "--ct", str(tmp_path / "ct.nii.gz"), "--out", str(tmp_path / "s.ply")])
