@@ -255,7 +255,7 @@ def manifold_from_arrays(
         raise NotManifoldError(
             source,
             f"not a closed oriented 2-manifold (manifold3d status {man.status().name}); "
-            "close its holes and fix its winding first (e.g. trimesh.repair or MeshLab)",
+            "repair it first (phantoms.repair_surface or `python -m phantoms repair`)",
         )
     return man
 
