@@ -87,7 +87,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from sim.pipeline import render_phantom  # noqa: PLC0415 - keep --help fast
 
     cfg = _config_from_args(args)
-    header = render_phantom(args.phantom, args.out, cfg, progress=not args.quiet)
+    header = render_phantom(
+        args.phantom,
+        args.out,
+        cfg,
+        progress=not args.quiet,
+        allow_outside_phantom=args.allow_outside_phantom,
+    )
     logging.getLogger("sim").info(
         "rendered %d step(s) with %s into %s", header["num_steps"], header["variant"], args.out
     )
@@ -157,6 +163,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
     r.add_argument("--eval-poses", type=int, help="number of fixed evaluation poses (default 8)")
+    r.add_argument(
+        "--allow-outside-phantom",
+        action="store_true",
+        help="let phantom.json name meshes outside the phantom folder (links resolved); "
+        "refused by default so that one phantom cannot render another's files",
+    )
     _add_render_options(r)
     r.set_defaults(func=_cmd_render)
 

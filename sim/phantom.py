@@ -13,7 +13,6 @@ Each mesh is the closed tissue solid (world = CT frame, mm); the camera lives in
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from chisel.io.manifest import named_path, read_json_manifest
+from chisel.io.meshfile import MESH_SUFFIXES
 from sim.errors import MeshError, PhantomError
 
 PHANTOM_FORMAT = "endoscopic-chisel/phantom"
@@ -93,24 +94,21 @@ def _int(value: Any, where: str, source: Path) -> int:
     return value
 
 
-def load_phantom(path: str | Path) -> Phantom:
-    """Read and validate ``path/phantom.json``; raises :class:`PhantomError` naming the problem."""
+def load_phantom(path: str | Path, allow_outside: bool = False) -> Phantom:
+    """Read and validate ``path/phantom.json``; raises :class:`PhantomError` naming the problem.
+
+    Each step's mesh must resolve (links followed) inside the phantom folder unless
+    ``allow_outside`` (``sim render --allow-outside-phantom``):
+    :class:`~chisel.core.errors.OutsideManifestError` otherwise, so one phantom cannot
+    render another's (or any) file.
+    """
     root = Path(path).absolute()
     manifest = root / "phantom.json"
     if not root.is_dir():
         raise PhantomError(root, "phantom folder does not exist")
     if not manifest.is_file():
         raise PhantomError(manifest, "phantom.json is missing (run `python -m phantoms generate`)")
-    try:
-        data = json.loads(manifest.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise PhantomError(manifest, "not a text file (invalid UTF-8)") from None
-    except json.JSONDecodeError as exc:
-        raise PhantomError(manifest, f"invalid JSON: {exc}") from None
-    except OSError as exc:
-        raise PhantomError(manifest, f"cannot read: {exc.strerror or exc}") from None
-    if not isinstance(data, dict):
-        raise PhantomError(manifest, f"expected a JSON object, got {type(data).__name__}")
+    data = read_json_manifest(manifest, PhantomError)
     if data.get("format") != PHANTOM_FORMAT:
         raise PhantomError(
             manifest, f"format is {data.get('format')!r}, expected {PHANTOM_FORMAT!r}"
@@ -134,7 +132,18 @@ def load_phantom(path: str | Path) -> Phantom:
         mesh = s["mesh"]
         if not isinstance(mesh, str) or not mesh:
             raise PhantomError(manifest, f"steps[{i}].mesh: expected a file path, got {mesh!r}")
-        steps.append(PhantomStep(i, str(s.get("name", f"step_{i}")), (root / mesh).absolute()))
+        mesh_path = named_path(
+            manifest,
+            mesh,
+            f"steps[{i}].mesh",
+            allow_outside=allow_outside,
+            option="--allow-outside-phantom",
+        )
+        if mesh_path.suffix.lower() not in MESH_SUFFIXES:
+            raise PhantomError(
+                manifest, f"steps[{i}].mesh: expected a PLY/STL/OBJ mesh, got {mesh!r}"[:300]
+            )
+        steps.append(PhantomStep(i, str(s.get("name", f"step_{i}")), mesh_path))
     roi = _vec(data["roi_box_mm"], (2, 3), "roi_box_mm", manifest)
     if np.any(roi[1] <= roi[0]):
         raise PhantomError(

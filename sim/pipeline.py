@@ -180,6 +180,7 @@ def render_phantom(
     include_eval: bool = True,
     progress: bool = True,
     texture: TextureVolume | None = None,
+    allow_outside_phantom: bool = False,
 ) -> dict[str, Any]:
     """Render every sequence of a phantom into ``out_dir``; returns the render.json dict.
 
@@ -191,7 +192,7 @@ def render_phantom(
     """
     randomized = cfg.randomization.enabled
     cfg = drawn_config(cfg)
-    phantom = load_phantom(phantom_dir)
+    phantom = load_phantom(phantom_dir, allow_outside=allow_outside_phantom)
     check_output_outside(out_dir, phantom.path, *{Path(s.mesh_path).parent for s in phantom.steps})
     meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
     planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval)

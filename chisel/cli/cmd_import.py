@@ -70,6 +70,10 @@ and for the steps depths/*.npy (monocular estimates; --with-depth, scaled by
 Writes OUT/preop/, OUT/step_<i>/ (sequence folders: frames already undistorted, zero
 distortion, camera_mask from undistorted_mask.bmp), OUT/<part>_surface.<ext> (copied
 seg meshes) and OUT/reference.json (the list). All or nothing.
+
+Every path input.json names must lie inside input.json's folder (links resolved) unless
+--allow-outside-manifest; each file is read as its kind first (the seg mesh must parse
+as a mesh and is written anew, poses must be N 4x4 numbers, images must decode).
 """
 
 
@@ -141,6 +145,7 @@ def _run_reference(args: argparse.Namespace) -> int:
         with_depth=args.with_depth,
         depth_scale_mm=args.depth_scale_mm,
         pose_units=args.pose_units,
+        allow_outside_manifest=args.allow_outside_manifest,
     )
     for p in result.parts:
         log.info(
@@ -289,4 +294,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--pose-units", choices=["mm", "m"], default="mm", help="translation units (default mm)"
+    )
+    p.add_argument(
+        "--allow-outside-manifest",
+        action="store_true",
+        help="let input.json name files outside its own folder (after resolving links); "
+        "by default such a path is refused, so a dataset cannot make the import read or "
+        "copy a file from elsewhere (e.g. ../../etc/shadow)",
     )

@@ -47,6 +47,20 @@ class VariantError(InvalidInputError):
     """No usable Mitsuba variant, or an explicitly requested variant does not work."""
 
 
+class OutsideManifestError(InvalidInputError):
+    """A manifest names a file outside its own folder (after resolving links), and the
+    user did not allow that explicitly."""
+
+
+class ResourceLimitError(InvalidInputError):
+    """A size declared by a file (array shape, image dimensions, count) is past a limit
+    that protects memory; refused before anything is allocated."""
+
+
+class TrainingDivergedError(ChiselError, RuntimeError):
+    """Training produced a non-finite loss or weights; the last finite checkpoint is kept."""
+
+
 class EmptyResultError(ChiselError, RuntimeError):
     """There is nothing to return (empty surface, no valid pixel, no registered frame)."""
 

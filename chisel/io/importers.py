@@ -45,6 +45,9 @@ from chisel.core.atomic import atomic_dir
 from chisel.core.errors import CameraError, ChiselError, InvalidInputError, OutputError, PoseError
 from chisel.core.geometry import Camera, check_rigid
 from chisel.io.calibration import Calibration, read_calibration
+from chisel.io.limits import check_npy_header, read_text_limited
+from chisel.io.manifest import check_inside, named_path, read_json_manifest
+from chisel.io.meshfile import read_mesh_file
 from chisel.io.sequence import Frame, SequenceWriter, check_depth_mm
 from chisel.io.undistort import (
     Circle,
@@ -214,11 +217,18 @@ class ImportReport:
 
 
 def load_npy(path: str | Path) -> np.ndarray:
-    """``np.load`` without pickle; a clear error for object arrays or unreadable files."""
+    """``np.load`` without pickle; a clear error for object arrays or unreadable files.
+
+    The header's shape and dtype are checked first (:func:`chisel.io.limits.check_npy_header`):
+    an array larger than the file's data or than :data:`chisel.io.limits.MAX_ARRAY_BYTES`
+    is refused before memory is allocated for it.
+    """
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "file not found")
     try:
+        with open(path, "rb") as fh:
+            check_npy_header(fh, path, path.stat().st_size)
         return np.load(path, allow_pickle=False)
     except ValueError as exc:
         if "allow_pickle" in str(exc) or "Object arrays" in str(exc):
@@ -278,8 +288,9 @@ def read_rgb(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def read_mask_png(path: str | Path, invert: bool = False) -> np.ndarray:
-    """(H, W) bool from a mask image: True where the pixel is > 127 (or <= 127 if ``invert``)."""
+def read_mask_png(path: str | Path, invert: bool = False, threshold: int = 127) -> np.ndarray:
+    """(H, W) bool from a mask image: True where the pixel is > ``threshold`` (or <= it if
+    ``invert``)."""
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "mask file not found")
@@ -287,7 +298,7 @@ def read_mask_png(path: str | Path, invert: bool = False) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise InvalidInputError(path, "cannot decode mask image (corrupt or truncated?)")
-    m = img > 127
+    m = img > threshold
     return ~m if invert else m
 
 
@@ -958,11 +969,12 @@ def _reference_intrinsics(value: object, source: str) -> np.ndarray:
 
 def _reference_poses(path: Path) -> np.ndarray:
     if path.suffix.lower() == ".npy":
-        arr = load_npy(path).astype(np.float64)
+        arr = load_npy(path)
+        if arr.dtype.kind not in "fiu":
+            raise PoseError(path, f"poses must be numbers, got dtype {arr.dtype}")
+        arr = arr.astype(np.float64)
     else:  # the older layout's trajectories.csv: 16 numbers per pose, any line breaks
-        if not path.is_file():
-            raise PoseError(path, "pose file not found")
-        text = path.read_text().strip()
+        text = read_text_limited(path, "pose file", PoseError).strip()
         try:
             arr = np.array([v for v in re.split(r"[,\s]+", text) if v], dtype=np.float64)
         except ValueError as exc:
@@ -974,37 +986,62 @@ def _reference_poses(path: Path) -> np.ndarray:
     return arr.reshape(-1, 4, 4)
 
 
+def _reference_int(part: dict, key: str, default: int | None, manifest: Path, name: str) -> int:
+    value = part.get(key, default)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise InvalidInputError(
+            manifest, f"{name}.{key}: expected an integer >= 0, got {value!r}"[:300]
+        )
+    return value
+
+
 def _import_reference_part(
-    part: dict,
+    part: object,
     name: str,
-    root: Path,
+    manifest: Path,
     K: np.ndarray,
     out: Path,
-    source: str,
     with_depth: bool,
     depth_scale_mm: float,
     pose_units: str,
+    allow_outside: bool,
 ) -> ReferencePart:
+    source = str(manifest)
     if not isinstance(part, dict) or "base_dir" not in part:
         raise InvalidInputError(source, f"{name}: expected an object with 'base_dir'")
-    base = Path(part["base_dir"]).expanduser()
-    if not base.is_absolute():
-        base = root / base
-    if not base.is_dir():
-        raise InvalidInputError(source, f"{name}: base_dir {base} is not a folder")
-    img_dir = base / part.get("img_dir", "images")
-    if not img_dir.is_dir():
-        raise InvalidInputError(img_dir, f"{name}: image folder not found")
+
+    def inside(
+        value: object, key: str, kind: Literal["file", "folder"], base: Path | None = None
+    ) -> Path:
+        return named_path(
+            manifest, value, f"{name}.{key}", allow_outside=allow_outside, kind=kind, base=base
+        )
+
+    base = inside(part["base_dir"], "base_dir", "folder")
+    img_dir = inside(part.get("img_dir", "images"), "img_dir", "folder", base)
     # The reference pairs sorted(*.jpg) with the poses in order; keep its plain sort.
     images = sorted(img_dir.glob("*.jpg"))
     if not images:
         images = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not images:
         raise InvalidInputError(img_dir, f"{name}: no images (*.jpg) in the folder")
-    poses_path = base / part.get("poses", "trajectories.npy")
+    # A link inside an accepted folder may still point anywhere.
+    images = [
+        check_inside(manifest, p, f"{name} image", allow_outside=allow_outside) for p in images
+    ]
+    poses_path = inside(part.get("poses", "trajectories.npy"), "poses", "file", base)
+    if poses_path.suffix.lower() not in (".npy", ".csv", ".txt"):
+        raise PoseError(
+            poses_path, "poses must be a .npy (N, 4, 4) or a .csv/.txt of 16 numbers per pose"
+        )
     P = _reference_poses(poses_path)
     if "start_idx" in part:  # older layout: poses for every tracker sample, subsampled here
-        P = P[int(part["start_idx"]) : int(part["end_idx"]) + 1 : int(part.get("interval", 1))]
+        first_idx = _reference_int(part, "start_idx", 0, manifest, name)
+        last_idx = _reference_int(part, "end_idx", None, manifest, name)
+        interval = _reference_int(part, "interval", 1, manifest, name)
+        if interval < 1:
+            raise InvalidInputError(manifest, f"{name}.interval: must be >= 1, got {interval}")
+        P = P[first_idx : last_idx + 1 : interval]
     track = PoseTrack(P, None, str(poses_path))
     poses = poses_world_from_cam(track, PoseConfig(units=pose_units))  # type: ignore[arg-type]
     if not np.isfinite(poses).all():
@@ -1012,30 +1049,29 @@ def _import_reference_part(
         raise PoseError(poses_path, f"NaN/inf in pose(s) {bad[:10].tolist()}")
     if len(poses) != len(images):
         raise PoseError(poses_path, f"{len(poses)} poses but {len(images)} images in {img_dir}")
-    mask_path = base / "undistorted_mask.bmp"
-    if not mask_path.is_file():
-        raise InvalidInputError(mask_path, f"{name}: the field-stop mask is missing")
-    mask_img = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
-    if mask_img is None:
-        raise InvalidInputError(mask_path, "cannot decode mask image (corrupt or truncated?)")
-    camera_mask = mask_img > 0  # the reference binarises with mask > 0
+    mask_path = inside("undistorted_mask.bmp", "undistorted_mask.bmp", "file", base)
+    camera_mask = read_mask_png(mask_path, threshold=0)  # the reference binarises with mask > 0
     first = read_rgb(images[0])
     camera = Calibration(K, np.zeros(5), None, source).camera_for(first.shape[1], first.shape[0])
     camera.check_image(camera_mask, str(mask_path))
     depth_files: list[Path] | None = None
     if with_depth and (base / "depths").is_dir():
-        depth_files = sorted((base / "depths").glob("*.npy"))
+        depth_dir = inside("depths", "depths", "folder", base)
+        depth_files = [
+            check_inside(manifest, p, f"{name} depth", allow_outside=allow_outside)
+            for p in sorted(depth_dir.glob("*.npy"))
+        ]
         if len(depth_files) != len(images):
             raise InvalidInputError(
-                base / "depths", f"{len(depth_files)} depth maps for {len(images)} images"
+                depth_dir, f"{len(depth_files)} depth maps for {len(images)} images"
             )
     surface = None
     if "seg" in part:
-        seg = base / part["seg"]
-        if not seg.is_file():
-            raise InvalidInputError(seg, f"{name}: segmentation mesh not found")
+        seg = inside(part["seg"], "seg", "file", base)
+        # Parsed as a mesh and written anew: a manifest cannot make us copy other bytes.
+        mesh = read_mesh_file(seg, f"{name}.seg mesh")
         surface = out / f"{name}_surface{seg.suffix.lower()}"
-        surface.write_bytes(seg.read_bytes())
+        mesh.export(surface)
     meta = {
         "source": "reference layout (Mangulabnan et al., github.com/janemilym/ct-update)",
         "part": name,
@@ -1074,6 +1110,7 @@ def import_reference(
     with_depth: bool = False,
     depth_scale_mm: float = 1.0,
     pose_units: Literal["mm", "m"] = "mm",
+    allow_outside_manifest: bool = False,
 ) -> ReferenceImport:
     """Import a dataset laid out for the reference implementation (``input.json``).
 
@@ -1081,32 +1118,46 @@ def import_reference(
     undistorted, camera mask from ``undistorted_mask.bmp``), ``<part>_surface.<ext>``
     copies of the ``seg`` meshes, and ``reference.json`` listing them. All or nothing:
     ``out_dir`` appears only when every part imported. See docs/real-data.md.
+
+    Every path ``input.json`` names (``base_dir``, ``img_dir``, ``poses``, ``seg``, and
+    each file found in those folders) must resolve inside ``input.json``'s folder unless
+    ``allow_outside_manifest`` (:class:`~chisel.core.errors.OutsideManifestError`); each
+    file is parsed as its kind (mesh, poses, image) before anything is written.
     """
-    input_json = Path(input_json)
+    input_json = Path(input_json).absolute()
     source = str(input_json)
     if not input_json.is_file():
         raise InvalidInputError(input_json, "input.json not found")
-    try:
-        args = json.loads(input_json.read_text())
-    except json.JSONDecodeError as exc:
-        raise InvalidInputError(input_json, f"invalid JSON: {exc}") from None
+    args = read_json_manifest(input_json)
     for key in ("intrinsics", "preop_data"):
         if key not in args:
             raise InvalidInputError(input_json, f"missing key {key!r}")
     K = _reference_intrinsics(args["intrinsics"], source)
-    steps = int(args.get("steps", 0))
+    steps = args.get("steps", 0)
+    if not isinstance(steps, int) or isinstance(steps, bool) or not 0 <= steps <= len(args):
+        raise InvalidInputError(
+            input_json,
+            f"steps must be an integer from 0 to the number of entries, got {steps!r}"[:300],
+        )
     parts = [("preop", args["preop_data"])]
     for i in range(1, steps + 1):
         if str(i) not in args:
             raise InvalidInputError(input_json, f"steps = {steps} but there is no {str(i)!r} entry")
         parts.append((f"step_{i}", args[str(i)]))
-    root = input_json.absolute().parent
     done: list[ReferencePart] = []
     with _output_errors(Path(out_dir)), atomic_dir(out_dir, REFERENCE_MANIFEST) as tmp:
         for name, part in parts:
             done.append(
                 _import_reference_part(
-                    part, name, root, K, tmp, source, with_depth, depth_scale_mm, pose_units
+                    part,
+                    name,
+                    input_json,
+                    K,
+                    tmp,
+                    with_depth,
+                    depth_scale_mm,
+                    pose_units,
+                    allow_outside_manifest,
                 )
             )
         manifest = {

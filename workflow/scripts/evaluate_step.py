@@ -1,6 +1,5 @@
 """Snakemake wrapper: score one surgical step (chisel.eval.step.evaluate_step)."""
 
-import json
 import logging
 
 from chisel.eval.step import (
@@ -9,25 +8,27 @@ from chisel.eval.step import (
 from chisel.eval.tables import (
     write_step_metrics,
 )
+from chisel.io.manifest import named_path, read_json_manifest
 
 sm = snakemake  # noqa: F821 - injected by Snakemake
 logging.basicConfig(
     filename=sm.log[0], level=logging.INFO, format="%(levelname)s %(name)s: %(message)s"
 )
 
-manifest = json.loads(open(sm.input.manifest).read())
-phantom_dir = sm.input.manifest.rsplit("/", 1)[0]
+manifest = read_json_manifest(sm.input.manifest)
 step = int(sm.wildcards.step)
 steps = {s["step"]: s for s in manifest["steps"]}
 masks = dict(zip(sm.params.mask_methods, sm.input.masks, strict=True)) or None
 result = evaluate_step(
-    gt_mesh_path=f"{phantom_dir}/{steps[step]['mesh']}",
+    gt_mesh_path=named_path(sm.input.manifest, steps[step]["mesh"], f"steps[{step}].mesh"),
     method_mesh_paths=dict(zip(sm.params.methods, sm.input.meshes, strict=True)),
     eval_sequence_path=sm.params.eval_sequence,
     roi_box_mm=[v for corner in manifest["roi_box_mm"] for v in corner],
     step=step,
     change_mask_paths=masks,
     change_sequence_path=sm.params.change_sequence if masks else None,
-    prev_gt_mesh_path=f"{phantom_dir}/{steps[step - 1]['mesh']}" if masks else None,
+    prev_gt_mesh_path=named_path(sm.input.manifest, steps[step - 1]["mesh"], "steps[].mesh")
+    if masks
+    else None,
 )
 write_step_metrics(sm.output.metrics, result)
