@@ -275,17 +275,18 @@ def nifti_bytes(
     description: str = "",
     compress: bool = True,
 ) -> bytes:
-    """A NIfTI-1 file's bytes with a RAS affine (sform and qform both set).
+    """A NIfTI file's bytes with a RAS affine (sform and qform both set).
 
+    NIfTI-1, or NIfTI-2 when the header copied from ``like`` is one.
     volume : a :class:`CtVolume`, or an (X, Y, Z) array with ``T_world_from_voxel``
-        ((4, 4) voxel -> LPS world mm).
-    like : a volume read from NIfTI whose header (data type, scaling, codes, description)
-        is kept; its geometry must equal the new one unless ``T_world_from_voxel`` is given.
+        ((4, 4) voxel -> LPS world mm; default: ``like``'s).
+    like : a volume read from NIfTI whose header (on-disk data type, codes, description)
+        is kept.
     compress : gzip with a zero mtime (equal volumes give equal bytes).
     """
     import nibabel as nib
 
-    data, T = _data_and_affine(volume, T_world_from_voxel)
+    data, T = _data_and_affine(volume, T_world_from_voxel, like)
     ras = LPS_FROM_RAS @ T
     base = like if like is not None else (volume if isinstance(volume, CtVolume) else None)
     header = base.header.copy() if base is not None and base.header is not None else None
@@ -308,14 +309,18 @@ def nifti_bytes(
 
 
 def _data_and_affine(
-    volume: CtVolume | np.ndarray, T_world_from_voxel: np.ndarray | None
+    volume: CtVolume | np.ndarray,
+    T_world_from_voxel: np.ndarray | None,
+    like: CtVolume | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
+    if T_world_from_voxel is None and like is not None and not isinstance(volume, CtVolume):
+        T_world_from_voxel = like.T_world_from_voxel
     if isinstance(volume, CtVolume):
         data = volume.data
         T = volume.T_world_from_voxel if T_world_from_voxel is None else T_world_from_voxel
     else:
         if T_world_from_voxel is None:
-            raise InvalidInputError("T_world_from_voxel", "required with a bare array")
+            raise InvalidInputError("T_world_from_voxel", "required with a bare array (or like=)")
         data, T = volume, T_world_from_voxel
     data = np.asarray(data)
     if data.ndim != 3:
@@ -343,7 +348,7 @@ def write_ct_volume(
         )
         atomic_write_bytes(path, data)
     elif name.endswith(".nrrd"):
-        _write_nrrd(path, *_data_and_affine(volume, T_world_from_voxel))
+        _write_nrrd(path, *_data_and_affine(volume, T_world_from_voxel, like))
     else:
         raise InvalidInputError(
             path, "unknown CT volume type to write; expected .nii, .nii.gz or .nrrd"
