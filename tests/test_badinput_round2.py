@@ -4,6 +4,7 @@ naming the file, and earlier outputs are kept."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -170,3 +171,130 @@ def test_deep_or_odd_phantom_json_is_one_error(toy_dir: Path, tmp_path: Path) ->
         with pytest.raises(InvalidInputError) as info:
             load_phantom(d)
         assert info.value.source == str(d / "phantom.json")
+
+
+# ------------------------------------------- items 2-4: what the sequence reader accepts
+
+CAM = Camera.from_fov(32, 24, 80)
+
+
+def _small_sequence(path: Path) -> Path:
+    from chisel.core.geometry import look_at
+    from chisel.io.sequence import Frame, write_sequence
+
+    rng = np.random.default_rng(0)
+    frames = [
+        Frame(
+            i,
+            look_at([i, 0.0, 0.0], [i, 0.0, 30.0], up=[0, -1, 0]),
+            rng.integers(0, 255, (*CAM.shape, 3), dtype=np.uint8),
+            rng.uniform(5, 20, CAM.shape).astype(np.float32),
+            rng.random(CAM.shape) > 0.2,
+        )
+        for i in range(2)
+    ]
+    return write_sequence(path, CAM, frames)
+
+
+def test_a_path_that_is_not_utf8_is_read_not_a_segfault(tmp_path: Path) -> None:
+    """cv2.imread crashed (exit 139) on such a name: run in a child so a crash is a failure."""
+    import subprocess
+    import sys
+
+    seq = Path(os.fsdecode(os.fsencode(str(tmp_path)) + b"/seq\xff"))
+    _small_sequence(seq)  # the writer, too, must not hand the name to OpenCV
+    images = Path(os.fsdecode(os.fsencode(str(tmp_path)) + b"/img\xfe"))
+    images.mkdir()
+    shutil.copy(seq / "rgb" / "000000.png", images / os.fsdecode(b"f\xff.png"))
+    code = (
+        "import os, sys\n"
+        "from chisel.io.sequence import Sequence\n"
+        "from chisel.io.importers import read_rgb\n"
+        "s = Sequence(os.fsdecode(sys.argv[1].encode('latin-1')))\n"
+        "assert s.rgb(1).shape == (24, 32, 3) and s.mask(0).any()\n"
+        "d = os.fsdecode(sys.argv[2].encode('latin-1'))\n"
+        "print(read_rgb(os.path.join(d, os.listdir(d)[0])).shape)\n"
+    )
+    as_latin = [os.fsencode(str(p)).decode("latin-1") for p in (seq, images)]
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *as_latin], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "(24, 32, 3)" in proc.stdout
+
+
+def _jpeg(rgb: np.ndarray, cut: int = 0) -> bytes:
+    data = cv2.imencode(".jpg", rgb)[1].tobytes()
+    return data[: len(data) - cut] if cut else data
+
+
+def test_truncated_jpeg_and_grey_masks_in_a_sequence_are_refused(tmp_path: Path) -> None:
+    from chisel.io.sequence import Sequence
+
+    seq = _small_sequence(tmp_path / "seq")
+    rgb1 = seq / "rgb" / "000001.png"
+    rgb1.write_bytes(_jpeg(np.full((24, 32, 3), 90, np.uint8), cut=200))
+    s = Sequence(seq)
+    with pytest.raises(InvalidInputError, match=r"000001\.png: not a PNG file"):
+        s.rgb(1)
+    # Truncated PNG bytes name the truncation.
+    good = (seq / "rgb" / "000000.png").read_bytes()
+    rgb1.write_bytes(good[:-30])
+    with pytest.raises(InvalidInputError, match=r"000001\.png: truncated PNG"):
+        s.rgb(1)
+    # A grey 128 in a mask (a resized or re-encoded mask) was read as "use".
+    mask = np.where(np.arange(32)[None, :] < 16, 255, 0).astype(np.uint8).repeat(24, 0)
+    mask[3, 3] = 128
+    (seq / "mask" / "000000.png").write_bytes(cv2.imencode(".png", mask)[1].tobytes())
+    with pytest.raises(InvalidInputError, match=r"000000\.png: mask holds 1 pixel\(s\) .*\[128\]"):
+        s.mask(0)
+    mask[3, 3] = 255
+    (seq / "mask" / "000000.png").write_bytes(cv2.imencode(".png", mask)[1].tobytes())
+    np.testing.assert_array_equal(s.mask(0), mask == 255)
+
+
+def _edit_header(seq: Path, **changes: Any) -> None:
+    header = json.loads((seq / "sequence.json").read_text())
+    for key, value in changes.items():
+        if key.startswith("camera."):
+            header["camera"][key.split(".", 1)[1]] = value
+        else:
+            header[key] = value
+    (seq / "sequence.json").write_text(json.dumps(header))
+
+
+def test_ray_depth_and_skew_are_refused_not_ignored(tmp_path: Path) -> None:
+    from chisel.core.errors import CameraError
+    from chisel.io.sequence import Sequence, SequenceWriter
+
+    seq = _small_sequence(tmp_path / "seq")
+    _edit_header(seq, depth_kind="ray")
+    with pytest.raises(InvalidInputError, match=r"sequence\.json: depth_kind is 'ray'; .*'z'"):
+        Sequence(seq)
+    _edit_header(seq, depth_kind="z")
+    K = CAM.K.copy()
+    K[0, 1] = 3.0
+    _edit_header(seq, **{"camera.K": K.tolist()})
+    with pytest.raises(
+        CameraError, match=r"sequence\.json: camera matrix has skew K\[0\]\[1\] = 3"
+    ):
+        Sequence(seq)
+    skewed = Camera(32, 24, K)
+    with pytest.raises(CameraError, match="skew"), SequenceWriter(tmp_path / "out", skewed):
+        pass
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_reader_runs_the_importers_units_and_lens_checks(tmp_path: Path) -> None:
+    from chisel.core.errors import CameraError, DepthUnitsError
+    from chisel.io.sequence import Sequence
+
+    seq = _small_sequence(tmp_path / "seq")
+    # A lens that turns back inside the image (k1 = -0.5 on an 80 degree field).
+    _edit_header(seq, **{"camera.dist": [-0.5, 0.0, 0.0, 0.0, 0.0]})
+    with pytest.raises(CameraError, match=r"sequence\.json: the distortion model .* turns back"):
+        Sequence(seq)
+    _edit_header(seq, **{"camera.dist": [0.0] * 5})
+    np.save(seq / "depth" / "000001.npy", np.full((24, 32), 0.012, np.float32))
+    with pytest.raises(DepthUnitsError, match=r"000001\.npy: median depth is 0\.012.*metres"):
+        Sequence(seq).depth_mm(1)

@@ -299,7 +299,13 @@ def _npz(path: Path) -> None:
 
 FRAME_CASES: list[tuple[str, str, Callable[[Path], None], type[Exception], str]] = [
     ("rgb missing", "rgb/000001.png", _rm, InvalidInputError, "file is missing"),
-    ("rgb corrupt", "rgb/000001.png", _truncate, InvalidInputError, "cannot decode image"),
+    (
+        "rgb corrupt",
+        "rgb/000001.png",
+        _truncate,
+        InvalidInputError,
+        "truncated PNG \\(no IEND chunk\\)",
+    ),
     ("rgb 10x10", "rgb/000002.png", _small_png, CameraError, "10x10 .* camera is 32x24"),
     ("depth missing", "depth/000001.npy", _rm, InvalidInputError, "file is missing"),
     ("depth 10x10", "depth/000002.npy", _small_npy, CameraError, "10x10 .* camera is 32x24"),

@@ -43,6 +43,7 @@ from chisel.eval.tables import (
     STEP_METRICS_FORMAT,
     step_label,
 )
+from chisel.io.images import decode_image
 from chisel.io.sequence import Sequence as SequenceFolder
 
 log = logging.getLogger(__name__)
@@ -209,9 +210,7 @@ def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -
             raise InvalidInputError(path, "change-mask folder holds no PNG file")
         masks = []
         for f in files:
-            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                raise InvalidInputError(f, "cannot decode change-mask PNG")
+            img = decode_image(f, cv2.IMREAD_GRAYSCALE, "change-mask PNG")
             masks.append(img > 127)
         arr = np.stack(masks) if len({m.shape for m in masks}) == 1 else None
         if arr is None:

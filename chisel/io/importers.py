@@ -45,6 +45,7 @@ from chisel.core.atomic import atomic_dir
 from chisel.core.errors import CameraError, ChiselError, InvalidInputError, OutputError, PoseError
 from chisel.core.geometry import Camera, check_rigid
 from chisel.io.calibration import Calibration, read_calibration
+from chisel.io.images import decode_image
 from chisel.io.limits import check_npy_header, read_text_limited
 from chisel.io.manifest import check_inside, named_path, read_json_manifest
 from chisel.io.meshfile import read_mesh_file
@@ -261,44 +262,16 @@ def list_files(folder: str | Path, suffixes: tuple[str, ...], what: str) -> list
     return files
 
 
-def _check_complete(path: Path) -> None:
-    """Refuse a JPEG/PNG whose end marker is missing: OpenCV decodes a truncated JPEG
-    silently (grey fill), so the decoder alone does not catch it."""
-    suffix = path.suffix.lower()
-    with open(path, "rb") as fh:
-        fh.seek(0, 2)
-        size = fh.tell()
-        fh.seek(max(0, size - 64))
-        tail = fh.read().rstrip(b"\x00")
-    if suffix in (".jpg", ".jpeg") and not tail.endswith(b"\xff\xd9"):
-        raise InvalidInputError(path, "truncated JPEG (no end-of-image marker)")
-    if suffix == ".png" and b"IEND" not in tail[-12:]:
-        raise InvalidInputError(path, "truncated PNG (no IEND chunk)")
-
-
 def read_rgb(path: str | Path) -> np.ndarray:
     """(H, W, 3) uint8 RGB image; raises :class:`InvalidInputError` if corrupt/truncated."""
-    path = Path(path)
-    if not path.is_file():
-        raise InvalidInputError(path, "image file not found")
-    _check_complete(path)
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise InvalidInputError(path, "cannot decode image (corrupt, truncated or not an image)")
+    img = decode_image(path, cv2.IMREAD_COLOR, "image")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def read_mask_png(path: str | Path, invert: bool = False, threshold: int = 127) -> np.ndarray:
     """(H, W) bool from a mask image: True where the pixel is > ``threshold`` (or <= it if
     ``invert``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InvalidInputError(path, "mask file not found")
-    _check_complete(path)
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise InvalidInputError(path, "cannot decode mask image (corrupt or truncated?)")
-    m = img > threshold
+    m = decode_image(path, cv2.IMREAD_GRAYSCALE, "mask image") > threshold
     return ~m if invert else m
 
 
@@ -315,12 +288,7 @@ def read_depth(path: str | Path, scale_mm: float = 1.0) -> np.ndarray:
         if arr.dtype.kind not in "fiu":
             raise InvalidInputError(path, f"depth must be numeric, got dtype {arr.dtype}")
     elif suffix == ".png":
-        if not path.is_file():
-            raise InvalidInputError(path, "depth file not found")
-        _check_complete(path)
-        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if arr is None:
-            raise InvalidInputError(path, "cannot decode depth PNG (corrupt or truncated?)")
+        arr = decode_image(path, cv2.IMREAD_UNCHANGED, "depth PNG")
         if arr.dtype != np.uint16 or arr.ndim != 2:
             raise InvalidInputError(
                 path, f"depth PNG must be single-channel 16-bit, got {arr.dtype} shape {arr.shape}"
@@ -589,6 +557,14 @@ class VideoSource:
         self.name = str(self.path)
         if not self.path.is_file():
             raise InvalidInputError(self.path, "video file not found")
+        try:
+            self.name.encode("utf-8")
+        except UnicodeEncodeError:
+            # OpenCV's video back ends open files by name and crash on such a name (exit
+            # 139); they cannot read from memory, so the user renames the file.
+            raise InvalidInputError(
+                repr(self.name), "the video's file name is not valid UTF-8: rename it"
+            ) from None
         cap = self._open()
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         cap.release()

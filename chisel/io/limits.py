@@ -166,6 +166,6 @@ def read_text_limited(
     try:
         return path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise error(path, f"{what} is not UTF-8 text (byte {exc.start})") from None
+        raise error(path, f"cannot parse {what}: not UTF-8 text (byte {exc.start})") from None
     except OSError as exc:
         raise error(path, f"cannot read {what}: {exc.strerror or exc}") from None

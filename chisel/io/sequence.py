@@ -36,8 +36,17 @@ from chisel.core.errors import (
     FormatVersionError,
     InvalidInputError,
     PoseError,
+    ResourceLimitError,
 )
 from chisel.core.geometry import Camera, check_rigid
+from chisel.io.images import PNG_MAGIC, decode_image
+from chisel.io.limits import (
+    MAX_IMAGE_SIDE_PX,
+    MAX_TEXT_BYTES,
+    check_npy_header,
+    read_text_limited,
+)
+from chisel.io.undistort import check_lens_model
 
 SEQUENCE_FORMAT = "endoscopic-chisel/sequence"
 SEQUENCE_VERSION = 1
@@ -104,6 +113,16 @@ def check_depth_mm(depth_mm: np.ndarray, source: str) -> np.ndarray:
 def imwrite(path: str, img: np.ndarray) -> None:
     """``cv2.imwrite`` that fails loudly: OpenCV returns False (disk full, unwritable
     folder) instead of raising, which would leave a frame silently missing."""
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        # A name with a byte that is not UTF-8 crashes OpenCV's own file handling
+        # (exit 139); Python writes those bytes, OpenCV only encodes.
+        ok, buf = cv2.imencode(Path(path).suffix, img)
+        if not ok:
+            raise OSError(errno.EIO, f"cannot encode image {path!r}") from None
+        Path(path).write_bytes(buf.tobytes())
+        return
     if not cv2.imwrite(path, img):
         raise OSError(errno.EIO, f"cannot write image {path} (disk full or unwritable?)")
 
@@ -117,8 +136,9 @@ def read_poses_txt(path: Path) -> np.ndarray:
     """Read N x 16 row-major ``T_world_from_cam`` lines; returns (N, 4, 4) float64."""
     if not path.is_file():
         raise PoseError(path, "file is missing")
+    text = read_text_limited(path, "pose file", PoseError)
     try:
-        arr = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2)
     except ValueError as exc:
         raise PoseError(path, f"cannot parse pose file: {exc}") from None
     if arr.size == 0:
@@ -128,6 +148,19 @@ def read_poses_txt(path: Path) -> np.ndarray:
     poses = arr.reshape(-1, 4, 4)
     check_rigid(poses, str(path))
     return poses
+
+
+def check_pinhole_without_skew(camera: Camera, source: str) -> None:
+    """Refuse a camera matrix with skew (``K[0, 1] != 0``): the projections of the updater
+    and the renderers use fx, fy, cx, cy only, so a skew would be silently dropped."""
+    skew = float(camera.K[0, 1])
+    if abs(skew) > 1e-9 * camera.K[0, 0]:
+        raise CameraError(
+            source,
+            f"camera matrix has skew K[0][1] = {skew:g}, which the projection does not model; "
+            "import the frames undistorted (chisel import without --no-undistort remaps "
+            "them to a pinhole camera without skew)",
+        )
 
 
 class SequenceWriter:
@@ -149,6 +182,7 @@ class SequenceWriter:
         undistorted: bool = False,
     ) -> None:
         self.path = Path(path)
+        check_pinhole_without_skew(camera, f"{self.path}: camera")
         self.camera = camera
         self.meta = dict(meta or {})
         self.camera_mask = camera_mask
@@ -283,6 +317,9 @@ def _is_int(value: object) -> bool:
 def _read_header(path: Path) -> dict[str, Any]:
     """``sequence.json`` as a dict; anything unreadable raises :class:`InvalidInputError`."""
     try:
+        size = path.stat().st_size
+        if size > MAX_TEXT_BYTES:
+            raise ResourceLimitError(path, f"is {size} bytes, over the limit of {MAX_TEXT_BYTES}")
         text = path.read_bytes().decode("utf-8")
     except OSError as exc:
         raise InvalidInputError(path, f"cannot read: {exc.strerror or exc}") from None
@@ -292,8 +329,8 @@ def _read_header(path: Path) -> dict[str, Any]:
         ) from None
     try:
         header = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InvalidInputError(path, f"invalid JSON: {exc}") from None
+    except (ValueError, RecursionError) as exc:  # RecursionError: "[[[[..." nested too deep
+        raise InvalidInputError(path, f"invalid JSON: {str(exc)[:200]}") from None
     if not isinstance(header, dict):
         raise InvalidInputError(path, f"expected a JSON object, got {_json_type(header)}")
     return header
@@ -317,6 +354,10 @@ def _header_camera(value: object, source: Path) -> Camera:
     for key in ("width", "height"):
         if key in value and not _is_int(value[key]):
             raise CameraError(source, f"camera {key} must be an integer, got {value[key]!r}")
+        if key in value and value[key] > MAX_IMAGE_SIDE_PX:
+            raise ResourceLimitError(
+                source, f"camera {key} is {value[key]} px, over the limit of {MAX_IMAGE_SIDE_PX}"
+            )
     try:
         camera = Camera.from_dict(value, str(source))
     except CameraError:
@@ -329,6 +370,7 @@ def _header_camera(value: object, source: Path) -> Camera:
             f"principal point ({camera.cx:g}, {camera.cy:g}) lies outside the "
             f"{camera.width}x{camera.height} image: the intrinsics do not match the image size",
         )
+    check_pinhole_without_skew(camera, str(source))
     return camera
 
 
@@ -361,6 +403,14 @@ class Sequence:
         if units != "mm":
             raise InvalidInputError(
                 header_path, f"units is {units!r}; poses and depth must be in mm ('mm')"
+            )
+        # Absent in files from older tools, which wrote z-depth as well.
+        depth_kind = header.get("depth_kind", "z")
+        if depth_kind != "z":
+            raise InvalidInputError(
+                header_path,
+                f"depth_kind is {depth_kind!r}; this reader reads z-depth along the optical "
+                "axis ('z'): convert ray lengths with depth_z = depth_ray / |K^-1 (u, v, 1)|",
             )
         meta = header.get("meta", {})
         if not isinstance(meta, dict):
@@ -397,9 +447,12 @@ class Sequence:
         self.camera_mask: np.ndarray | None = None
         if _header_flag(header, "has_camera_mask", header_path):
             mask_path = self.path / "camera_mask.png"
-            self.camera_mask = self._read_png(mask_path, gray=True) > 127
+            self.camera_mask = self._read_mask(mask_path)
             if not self.camera_mask.any():
                 raise InvalidInputError(mask_path, "camera mask keeps no pixel (all black)")
+        # The importers refuse a lens model that folds over inside the used image; a
+        # sequence written by other tools gets the same check (it failed much later).
+        check_lens_model(self.camera, self.camera_mask, str(header_path))
 
     def __len__(self) -> int:
         return self.num_frames
@@ -407,11 +460,28 @@ class Sequence:
     def _read_png(self, path: Path, gray: bool) -> np.ndarray:
         if not path.is_file():
             raise InvalidInputError(path, "file is missing")
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-        if img is None:
-            raise InvalidInputError(path, "cannot decode image (corrupt or truncated?)")
+        with open(path, "rb") as fh:
+            if fh.read(8) != PNG_MAGIC:
+                # OpenCV decodes by content: JPEG bytes (even truncated ones, with a grey
+                # fill) under a .png name would otherwise read as a whole frame.
+                raise InvalidInputError(path, "not a PNG file (a sequence stores PNG frames)")
+        img = decode_image(path, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
         self.camera.check_image(img, str(path))
         return img if gray else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def _read_mask(self, path: Path) -> np.ndarray:
+        """A 0/255 mask PNG as bool; other values are refused, not thresholded (a grey 128
+        from a resized or JPEG-compressed mask would turn excluded pixels valid)."""
+        img = self._read_png(path, gray=True)
+        odd = (img != 0) & (img != 255)
+        if odd.any():
+            values = np.unique(img[odd])
+            raise InvalidInputError(
+                path,
+                f"mask holds {int(odd.sum())} pixel(s) that are neither 0 nor 255 (e.g. "
+                f"{values[:5].tolist()}); a mask is 255 = use, 0 = do not use",
+            )
+        return img == 255
 
     def rgb(self, i: int) -> np.ndarray:
         """(H, W, 3) uint8 RGB of frame ``i``."""
@@ -427,6 +497,10 @@ class Sequence:
         if not path.is_file():
             raise InvalidInputError(path, "file is missing")
         try:
+            with open(path, "rb") as fh:
+                if fh.read(6) == b"\x93NUMPY":
+                    fh.seek(0)
+                    check_npy_header(fh, path, path.stat().st_size)
             arr = np.load(path, allow_pickle=False)
         except (ValueError, EOFError, OSError) as exc:  # EOFError: an empty file
             raise InvalidInputError(
@@ -440,13 +514,22 @@ class Sequence:
         if arr.ndim != 2:
             raise InvalidInputError(path, f"depth must be a 2-D (H, W) map, got shape {arr.shape}")
         self.camera.check_image(arr, str(path))
-        return depth_from_disk(arr)
+        depth = depth_from_disk(arr)
+        valid = np.isfinite(depth)
+        # The importers' units check, here too: depth in metres failed much later.
+        if valid.any() and float(np.median(depth[valid])) < MIN_PLAUSIBLE_MEDIAN_DEPTH_MM:
+            raise DepthUnitsError(
+                path,
+                f"median depth is {float(np.median(depth[valid])):.4g}, implausibly small for "
+                "millimetres; the depth looks like metres: multiply by 1000",
+            )
+        return depth
 
     def mask(self, i: int) -> np.ndarray | None:
         """(H, W) bool mask of frame ``i`` (per-frame mask AND camera mask), or None."""
         m = None
         if self.has_mask:
-            m = self._read_png(self.path / "mask" / f"{i:06d}.png", gray=True) > 127
+            m = self._read_mask(self.path / "mask" / f"{i:06d}.png")
         if self.camera_mask is not None:
             m = self.camera_mask if m is None else (m & self.camera_mask)
         return m
