@@ -27,6 +27,10 @@ class InvalidInputError(ChiselError, ValueError):
         super().__init__(f"{self.source}: {problem}")
 
 
+class ConfigError(InvalidInputError):
+    """A configuration value (YAML key, CLI option, dataclass field) is invalid."""
+
+
 class PoseError(InvalidInputError):
     """A pose is not a finite rigid 4x4 transform, or pose and frame counts differ."""
 
