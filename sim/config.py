@@ -8,19 +8,16 @@ typo never passes silently. ``config/sim_default.yaml`` lists every key with its
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import math
-import numbers
-import types
-import typing
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 
+from chisel.core.config import check_fields, load_config_file, to_plain
+from chisel.core.config import config_from_dict as config_from_dict_of
+from chisel.core.config import replace_in as replace_dotted
 from chisel.core.errors import CameraError
 from chisel.core.geometry import Camera
 from chisel.io.undistort import check_lens_model
@@ -34,120 +31,6 @@ MAX_FRAMES = 100_000
 """Largest number of frames (or evaluation poses) of one sequence."""
 MIN_CLEARANCE_MM = 0.1
 """Smallest camera-to-tissue clearance of the paths, mm."""
-
-
-def _show(value: Any) -> str:
-    """A short, YAML-flavoured description of a value for error messages."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return f"{value!r} (a string)"
-    text = repr(value.tolist() if isinstance(value, np.ndarray) else value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _check_value(value: Any, tp: Any, key: str) -> Any:
-    """``value`` checked against the field annotation ``tp``; returns it normalised.
-
-    Normalisation only makes equal values uniform (lists -> tuples, numpy scalars ->
-    Python numbers); it never converts between kinds: YAML ``2.5`` for an integer field,
-    ``"85"`` for a number or ``"no"`` for a boolean are errors, not guesses.
-    """
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        options = [a for a in args if a is not type(None)]
-        if value is None and len(options) < len(args):
-            return None
-        # Only ``X | None`` is used in the configuration dataclasses.
-        return _check_value(value, options[0], key)
-    if origin is Literal:
-        _check(
-            isinstance(value, str) and value in args,
-            key,
-            f"expected one of {', '.join(map(str, args))}, got {_show(value)}",
-        )
-        return value
-    if origin is tuple:
-        variadic = len(args) == 2 and args[1] is Ellipsis
-        noun = "numbers" if all(a is float for a in args if a is not Ellipsis) else "values"
-        what = f"a list of {noun}" if variadic else f"a list of {len(args)} {noun}"
-        _check(
-            isinstance(value, list | tuple | np.ndarray) and not isinstance(value, str),
-            key,
-            f"expected {what}, got {_show(value)}",
-        )
-        items = list(value)
-        _check(
-            variadic or len(items) == len(args),
-            key,
-            f"expected {what}, got {len(items)}: {_show(items)}",
-        )
-        elem_types = [args[0]] * len(items) if variadic else list(args)
-        return tuple(
-            _check_value(v, t, f"{key}[{i}]")
-            for i, (v, t) in enumerate(zip(items, elem_types, strict=True))
-        )
-    if tp is bool:
-        # Not ``bool(value)``: the string "no" would be true.
-        _check(
-            isinstance(value, bool | np.bool_), key, f"expected true or false, got {_show(value)}"
-        )
-        return bool(value)
-    if tp is int:
-        _check(
-            isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_),
-            key,
-            f"expected an integer, got {_show(value)}",
-        )
-        return int(value)
-    if tp is float:
-        _check(
-            isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_),
-            key,
-            f"expected a number, got {_show(value)}",
-        )
-        try:
-            finite = math.isfinite(value)
-        except OverflowError:  # an integer too large for a float
-            finite = False
-        _check(finite, key, f"expected a finite number, got {_show(value)}")
-        # Keep Python ints as given (render.json records the configuration as written).
-        return value if type(value) in (int, float) else float(value)
-    if isinstance(tp, type) and is_dataclass(tp):
-        _check(
-            isinstance(value, tp),
-            key,
-            f"expected a mapping of {tp.__name__} keys, got {_show(value)}",
-        )
-        return value
-    if tp is str:
-        _check(isinstance(value, str), key, f"expected a string, got {_show(value)}")
-        return value
-    raise TypeError(f"{key}: unsupported field type {tp!r}")  # a programming error
-
-
-@functools.cache
-def _field_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
-
-
-def _check_fields(obj: Any, section: str) -> None:
-    """Check every field of the frozen dataclass ``obj`` against its annotation.
-
-    Runs first in each ``__post_init__``, so YAML files, ``replace_in`` overrides and
-    direct construction are all checked the same way; the error names the dotted key
-    (``section.field``).
-    """
-    hints = _field_types(type(obj))
-    for f in fields(obj):
-        key = f"{section}.{f.name}" if section else f.name
-        value = getattr(obj, f.name)
-        checked = _check_value(value, hints[f.name], key)
-        if checked is not value:
-            object.__setattr__(obj, f.name, checked)
 
 
 def _check(cond: bool, name: str, problem: str) -> None:
@@ -192,7 +75,7 @@ class CameraConfig:
     """Refuse distortions whose undistorted render grid exceeds this many times the pixels."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "camera")
+        check_fields(self, error=ConfigError, section="camera")
         _check(
             self.width >= 8 and self.height >= 8,
             "camera.width/height",
@@ -278,7 +161,7 @@ class LightConfig:
     """Half-angle of the spot's full-intensity core, degrees (smooth falloff beyond)."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "light")
+        check_fields(self, error=ConfigError, section="light")
         _check(
             float(np.linalg.norm(self.offset_mm)) < 2.0,
             "light.offset_mm",
@@ -320,7 +203,7 @@ class AppearanceConfig:
     """Cap on the texture volume's voxel count (memory: 12 bytes per voxel)."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "appearance")
+        check_fields(self, error=ConfigError, section="appearance")
         for name in ("albedo_rgb", "vessel_rgb"):
             v = getattr(self, name)
             _check(
@@ -392,7 +275,7 @@ class ImagingConfig:
     """Auto-exposure target: mean linear signal inside the field stop."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "imaging")
+        check_fields(self, error=ConfigError, section="imaging")
         _check(1 <= self.spp <= 4096, "imaging.spp", f"must be in [1, 4096], got {self.spp}")
         _check(self.exposure > 0, "imaging.exposure", f"must be > 0, got {self.exposure}")
         _check(
@@ -433,7 +316,7 @@ class RandomizationConfig:
     """Read-noise std."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "randomization")
+        check_fields(self, error=ConfigError, section="randomization")
         bounds = {
             "albedo_scale": (0.1, 3.0),
             "hue_shift": (-0.5, 0.5),
@@ -465,7 +348,7 @@ class TrackingConfig:
     """Tracking latency: frame i reports the true pose of frame max(i - latency, 0)."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "tracking")
+        check_fields(self, error=ConfigError, section="tracking")
         for name in ("jitter_mm", "jitter_deg", "handeye_mm", "handeye_deg"):
             v = getattr(self, name)
             _check(v >= 0, f"tracking.{name}", f"must be a finite number >= 0, got {v}")
@@ -508,7 +391,7 @@ class PathConfig:
     """Attempts at drawing a collision-free intraoperative path before giving up."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "paths")
+        check_fields(self, error=ConfigError, section="paths")
         # Paths are sampled every clearance / 4 mm: a near-zero clearance would mean
         # millions of collision queries (and the scope tip is ~2 mm in radius anyway).
         _check(
@@ -577,110 +460,29 @@ class SimConfig:
     """Mitsuba variant; ``auto`` probes cuda, then llvm, then falls back to scalar (warned)."""
 
     def __post_init__(self) -> None:
-        _check_fields(self, "")  # also checks ``variant`` against its Literal
+        check_fields(
+            self, error=ConfigError, section=""
+        )  # also checks ``variant`` against its Literal
         _check(self.seed >= 0, "seed", f"must be an integer >= 0, got {self.seed!r}")
-
-
-def _to_plain(value: Any) -> Any:
-    if is_dataclass(value):
-        return {f.name: _to_plain(getattr(value, f.name)) for f in fields(value)}
-    if isinstance(value, tuple | list):
-        return [_to_plain(v) for v in value]
-    return value
 
 
 def config_to_dict(cfg: SimConfig) -> dict[str, Any]:
     """Plain nested dict (JSON/YAML-ready) of a configuration."""
-    return _to_plain(cfg)
-
-
-def _tupleize(value: Any) -> Any:
-    if isinstance(value, list):
-        return tuple(_tupleize(v) for v in value)
-    return value
-
-
-def _build(cls: type, data: Any, where: str) -> Any:
-    if not isinstance(data, dict):
-        raise ConfigError(where, f"expected a mapping, got {_show(data)}")
-    known = {f.name: f for f in fields(cls)}
-    unknown = sorted(str(k) for k in set(data) - set(known))  # YAML keys may be numbers
-    if unknown:
-        raise ConfigError(where, f"unknown key(s) {unknown}; known keys: {sorted(known)}")
-    kwargs: dict[str, Any] = {}
-    for name, value in data.items():
-        default = (
-            known[name].default_factory()
-            if known[name].default_factory is not dataclasses.MISSING
-            else None
-        )  # type: ignore[misc]
-        sub = f"{where}.{name}" if where else name
-        if is_dataclass(default):
-            kwargs[name] = _build(type(default), value, sub)
-        else:
-            kwargs[name] = _tupleize(value)
-    try:
-        return cls(**kwargs)
-    except ConfigError:
-        raise
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(where or "config", str(exc)) from None
+    return to_plain(cfg)
 
 
 def config_from_dict(data: dict[str, Any]) -> SimConfig:
     """Build a :class:`SimConfig` from a nested mapping; unknown keys raise ConfigError."""
-    try:
-        return _build(SimConfig, data, "")
-    except ConfigError as exc:
-        if exc.source:
-            raise
-        raise ConfigError("config", exc.problem) from None  # top level: no key to name
+    return config_from_dict_of(SimConfig, data, "", ConfigError)
 
 
 def load_config(path: str | Path | None) -> SimConfig:
     """Read a YAML configuration file (``None`` = defaults); raises :class:`ConfigError`."""
     if path is None:
         return SimConfig()
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(p, "configuration file does not exist")
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise ConfigError(p, "not a text file (invalid UTF-8)") from None
-    except yaml.YAMLError as exc:
-        # PyYAML's message spans several lines; the CLI prints one.
-        raise ConfigError(p, f"invalid YAML: {' '.join(str(exc).split())}") from None
-    except OSError as exc:
-        raise ConfigError(p, f"cannot read: {exc.strerror or exc}") from None
-    if data is None:  # an empty file (or only comments): all defaults
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(p, f"expected a mapping of configuration sections, got {_show(data)}")
-    try:
-        return _build(SimConfig, data, "")
-    except ConfigError as exc:
-        # Name the file and the dotted key: "cfg.yaml: paths.preop_frames: ...".
-        raise ConfigError(f"{p}: {exc.source}" if exc.source else p, exc.problem) from None
-
-
-def _field_names(obj: Any) -> set[str]:
-    return {f.name for f in fields(obj)}
+    return load_config_file(SimConfig, path, ConfigError)
 
 
 def replace_in(cfg: SimConfig, **changes: Any) -> SimConfig:
     """Copy of ``cfg`` with dotted-path changes, e.g. ``replace_in(cfg, **{"camera.width": 64})``."""
-    for key, value in changes.items():
-        if value is None:
-            continue
-        parts = key.split(".")
-        section = getattr(cfg, parts[0], None)
-        if len(parts) == 1 and parts[0] in _field_names(cfg):
-            cfg = dataclasses.replace(cfg, **{key: value})
-        elif len(parts) == 2 and is_dataclass(section) and parts[1] in _field_names(section):
-            cfg = dataclasses.replace(
-                cfg, **{parts[0]: dataclasses.replace(section, **{parts[1]: value})}
-            )
-        else:
-            raise ConfigError(key, "unknown configuration key")
-    return cfg
+    return replace_dotted(cfg, ConfigError, **changes)

@@ -9,6 +9,7 @@ caster, lives in :mod:`chisel.core.mitsuba_variant`).
 
 from __future__ import annotations
 
+from chisel.core.errors import ConfigError as BaseConfigError
 from chisel.core.errors import InvalidInputError
 from chisel.core.errors import VariantError as VariantError  # the variant probe is chisel's
 
@@ -17,7 +18,7 @@ class SimError(InvalidInputError):
     """Base class of every input error the simulator raises on purpose."""
 
 
-class ConfigError(SimError):
+class ConfigError(SimError, BaseConfigError):
     """A configuration value (YAML key, CLI option, dataclass field) is invalid."""
 
 
