@@ -28,6 +28,7 @@ _COMMANDS: dict[str, str] = {
     "update": "chisel.cli.cmd_model",
     "mesh": "chisel.cli.cmd_model",
     "render-depth": "chisel.cli.cmd_model",
+    "export-ct": "chisel.cli.cmd_ct",
 }
 
 _DESCRIPTION = """\
