@@ -16,6 +16,9 @@ On disk a model is one ``.npz`` file (read with ``allow_pickle=False``)::
     voxel_size_mm       float64 scalar
     trunc_mm            float64 scalar
     step                int64 scalar, surgical steps applied since the preop model (0 = preop)
+    build               str  "ct" (initialised from the whole CT) or "sweep" (the paper's
+                        build from the preop sweep alone); absent in old files = "sweep"
+    ct_sha256           str  content hash of the CT a "ct" build started from ("" = unknown)
 
 Files are written atomically (:func:`chisel.core.atomic.atomic_path`): a failed save never
 leaves a half-written model behind.
@@ -26,6 +29,7 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -34,6 +38,8 @@ from chisel.core.errors import FormatVersionError, InvalidInputError
 
 MODEL_FORMAT = "endoscopic-chisel/model"
 MODEL_VERSION = 1
+BUILDS: tuple[str, ...] = ("ct", "sweep")
+"""The preoperative builds a model file can record (field ``build``)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,6 +64,12 @@ class TsdfModel:
     """(X, Y, Z, 3) uint8 RGB averaged with the same weights, or None."""
     step: int = 0
     """Number of surgical steps applied since the preoperative model (0 = preop)."""
+    build: Literal["ct", "sweep"] = "sweep"
+    """How the preoperative model was built: "ct" = signed distance of the whole CT plus the
+    sweep's weight and colour (:mod:`chisel.ct_model`); "sweep" = the paper's fusion of the
+    CT surface rendered at the preop poses."""
+    ct_sha256: str = ""
+    """sha256 of the CT content the model was initialised from ("" = not recorded)."""
 
     def __post_init__(self) -> None:
         tsdf = np.asarray(self.tsdf)
@@ -94,6 +106,8 @@ class TsdfModel:
                     "color", f"expected {(*tsdf.shape, 3)} uint8, got {c.shape} {c.dtype}"
                 )
         object.__setattr__(self, "step", int(self.step))
+        if self.build not in BUILDS:
+            raise InvalidInputError("build", f"expected one of {BUILDS}, got {self.build!r}")
 
     # ----------------------------------------------------------------- construction
     @classmethod
@@ -189,6 +203,8 @@ class TsdfModel:
             "voxel_size_mm": np.array(self.voxel_size_mm, dtype=np.float64),
             "trunc_mm": np.array(self.trunc_mm, dtype=np.float64),
             "step": np.array(self.step, dtype=np.int64),
+            "build": np.array(self.build),
+            "ct_sha256": np.array(self.ct_sha256),
         }
         if self.color is not None:
             arrays["color"] = self.color
@@ -245,8 +261,17 @@ class TsdfModel:
         step = data.get("step", np.int64(0))
         if step.dtype.kind not in "iu" or int(step) < 0:
             raise InvalidInputError(path, f"step must be an integer >= 0, got {step}")
+        text = {}
+        for key, default in (("build", "sweep"), ("ct_sha256", "")):
+            if key in data and (data[key].shape != () or data[key].dtype.kind != "U"):
+                raise InvalidInputError(
+                    path, f"{key} must be a string, got {data[key].dtype} {data[key].shape}"
+                )
+            text[key] = str(data[key]) if key in data else default
         try:
             return cls(
+                build=text["build"],  # type: ignore[arg-type]
+                ct_sha256=text["ct_sha256"],
                 tsdf=data["tsdf"],
                 weight=data["weight"],
                 T_world_from_voxel=data["T_world_from_voxel"],

@@ -63,19 +63,67 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser(
         "build",
-        help="build the preoperative TSDF model from a CT surface and a preop sequence",
-        description="Render the CT surface at every tracked pose of the preoperative sequence "
-        "and fuse the depth maps (Curless-Levoy, free space carved) into a model file.\n\n"
-        + _FORMATS,
+        help="build the preoperative TSDF model from the CT (whole CT or the preop sweep)",
+        description="Two builds (the model file records which, field `build`):\n"
+        "  --from-ct CT   (default in the workflow) every voxel the CT covers takes the CT's "
+        "signed distance\n"
+        "                 (truncated, normalised, initial weight --ct-weight), so surfaces no "
+        "preop frame\n"
+        "                 sees are in the model; the preop sweep adds weight and colour where "
+        "it sees.\n"
+        "                 CT = NIfTI label or intensity volume, or a closed segmentation mesh.\n"
+        "  --surface CT   the paper's build: the CT surface rendered at every tracked preop "
+        "pose, fused\n"
+        "                 (Curless-Levoy, free space carved); nothing behind what the sweep "
+        "sees.\n\n" + _FORMATS,
         formatter_class=_FMT,
     )
-    p.add_argument(
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument(
         "--surface",
         "--ct",
         dest="surface",
-        required=True,
         type=Path,
-        help="CT segmentation: mesh or NIfTI",
+        help="sweep-only build (the paper's) from this CT segmentation: mesh or NIfTI",
+    )
+    which.add_argument(
+        "--from-ct",
+        dest="from_ct",
+        type=Path,
+        help="whole-CT build from this NIfTI volume (label or intensity) or closed mesh",
+    )
+    p.add_argument(
+        "--kind",
+        choices=("auto", "intensity", "label"),
+        default="auto",
+        help="--from-ct NIfTI contents: intensity HU, labels (0 = air), or auto (default)",
+    )
+    p.add_argument(
+        "--iso-level",
+        type=finite_float,
+        default=None,
+        help="--from-ct intensity iso-level, HU (default -480)",
+    )
+    p.add_argument(
+        "--tissue-labels",
+        type=int,
+        nargs="+",
+        default=None,
+        help="--from-ct label volume: the labels that are tissue (default 1 2; 0 = air; any "
+        "other label is refused)",
+    )
+    p.add_argument(
+        "--max-miss-fraction",
+        type=finite_float,
+        default=0.05,
+        help="--from-ct: refuse the CT when, in any preop frame, more than this fraction of "
+        "the rays leave the CT's grid without meeting tissue (0.05)",
+    )
+    p.add_argument(
+        "--ct-weight",
+        type=finite_float,
+        default=1.0,
+        help="--from-ct: initial weight of every voxel the CT covers (1.0)",
     )
     p.add_argument("--sequence", required=True, type=Path, help="preoperative sequence folder")
     p.add_argument(
@@ -167,6 +215,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=3.0,
         help="the same for the correction's rotation (3.0 deg)",
     )
+    p.add_argument(
+        "--ct",
+        type=Path,
+        default=None,
+        help="the CT the model was built on (NIfTI or mesh): refused when the model "
+        "records another CT's content hash (whole-CT builds)",
+    )
     p.add_argument("--max-frames", type=int, default=None, help="use the first N frames only")
     p.add_argument(
         "--depth-noise-mm",
@@ -246,6 +301,57 @@ def _cmd_ct_surface(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_ct_arrays(path: Path, kind: str = "auto"):  # noqa: ANN202 - CtVolume or Trimesh
+    """A CT file as a :class:`chisel.io.ct.CtVolume` (NIfTI/NRRD, LPS world mm) or a mesh."""
+    import trimesh
+
+    from chisel.io import ct as ct_io
+
+    if not path.is_file():
+        raise InvalidInputError(path, "CT file is missing")
+    name = path.name.lower()
+    if name.endswith(ct_io.VOLUME_SUFFIXES):
+        return ct_io.read_ct_volume(path, kind)  # type: ignore[arg-type]
+    if name.endswith(ct_io.MESH_SUFFIXES):
+        mesh = ct_io.load_ct_surface(path)
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise InvalidInputError(path, "not a triangle mesh")
+        return mesh
+    raise InvalidInputError(
+        path, f"unknown CT type; expected one of {ct_io.VOLUME_SUFFIXES + ct_io.MESH_SUFFIXES}"
+    )
+
+
+def _read_ct(args: argparse.Namespace):  # noqa: ANN202 - chisel.ct_model.CtInput
+    from chisel.ct_model import TISSUE_LABELS, ct_from_mesh, ct_from_volume
+
+    from chisel.io.ct import CtVolume
+
+    got = _read_ct_arrays(args.from_ct, args.kind)
+    if isinstance(got, CtVolume):
+        labels = TISSUE_LABELS if args.tissue_labels is None else tuple(args.tissue_labels)
+        if 0 in labels:
+            raise InvalidInputError("--tissue-labels", "label 0 is air, not tissue")
+        return ct_from_volume(
+            got.data, got.T_world_from_voxel, got.kind, args.iso_level, labels, str(args.from_ct)
+        )
+    return ct_from_mesh(got, source=str(args.from_ct))
+
+
+def _ct_fingerprint(path: Path) -> str:
+    """The content hash a whole-CT build records for this CT file (see chisel.ct_model)."""
+    from chisel.ct_model import fingerprint_arrays
+
+    from chisel.io.ct import CtVolume
+
+    got = _read_ct_arrays(path)
+    if isinstance(got, CtVolume):
+        return fingerprint_arrays(got.data, got.T_world_from_voxel)
+    return fingerprint_arrays(
+        np.asarray(got.vertices, dtype=np.float64), np.asarray(got.faces, dtype=np.int64)
+    )
+
+
 def _cmd_build(args: argparse.Namespace) -> int:
     from chisel.io.ct import load_ct_surface
     from chisel.io.sequence import Sequence
@@ -256,9 +362,12 @@ def _cmd_build(args: argparse.Namespace) -> int:
         trunc_mm=args.trunc_mm,
         margin_mm=args.margin_mm,
         color=args.color,
+        ct_weight=args.ct_weight,
+        max_miss_fraction=args.max_miss_fraction,
     )
-    surface = load_ct_surface(args.surface)
     seq = Sequence(args.sequence)
+    ct = _read_ct(args) if args.from_ct is not None else None
+    surface = None if ct is not None else load_ct_surface(args.surface)
     if args.color and not seq.has_rgb:
         raise InvalidInputError(args.sequence, "--color needs RGB in the sequence, it has none")
     rgbs = (seq.rgb(i) for i in range(len(seq))) if args.color else None
@@ -271,9 +380,16 @@ def _cmd_build(args: argparse.Namespace) -> int:
         rgbs=rgbs,
         masks=masks,
         progress=_progress(args.no_progress, "fuse"),
+        ct=ct,
     )
     model.save(args.out)
-    log.info("model %s voxels of %.3g mm -> %s", model.shape, model.voxel_size_mm, args.out)
+    log.info(
+        "model (%s build) %s voxels of %.3g mm -> %s",
+        model.build,
+        model.shape,
+        model.voxel_size_mm,
+        args.out,
+    )
     return 0
 
 
@@ -321,6 +437,18 @@ def _cmd_update(args: argparse.Namespace) -> int:
         allow_unused_step=args.allow_unused_step,
     )
     model = TsdfModel.load(args.model)
+    if args.ct is not None:
+        if not model.ct_sha256:
+            raise InvalidInputError(
+                "--ct",
+                f"{args.model} records no CT ({model.build} build): cannot check it was "
+                f"built on {args.ct}",
+            )
+        if _ct_fingerprint(args.ct) != model.ct_sha256:
+            raise InvalidInputError(
+                "--ct",
+                f"{args.model} was built on another CT than {args.ct} (content hashes differ)",
+            )
     seq = Sequence(args.sequence)
     source = depth_source_from_spec(args.depth_source, seq)
     if args.depth_noise_mm > 0:
