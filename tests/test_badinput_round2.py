@@ -298,3 +298,57 @@ def test_the_reader_runs_the_importers_units_and_lens_checks(tmp_path: Path) -> 
     np.save(seq / "depth" / "000001.npy", np.full((24, 32), 0.012, np.float32))
     with pytest.raises(DepthUnitsError, match=r"000001\.npy: median depth is 0\.012.*metres"):
         Sequence(seq).depth_mm(1)
+
+
+# ------------------------------------------------- item 7: networks with NaN weights
+
+
+def test_checkpoints_with_nan_weights_are_refused_naming_the_file(tmp_path: Path) -> None:
+    import torch
+    from test_depth import TINY
+
+    from chisel.depth.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+    from chisel.depth.infer import load_depth_source
+    from chisel.depth.network import DepthNet, DepthPredictor
+
+    net = DepthNet(TINY)
+    good = save_checkpoint(tmp_path / "good.pt", net)
+    payload = torch.load(good, weights_only=True)
+    name = next(k for k, v in payload["state_dict"].items() if v.is_floating_point())
+    payload["state_dict"][name][...] = float("nan")
+    torch.save(payload, tmp_path / "nan.pt")  # as a diverged run wrote it before
+    for load in (load_checkpoint, load_depth_source):
+        with pytest.raises(CheckpointError) as info:
+            load(tmp_path / "nan.pt")
+        assert info.value.source == str(tmp_path / "nan.pt")
+        assert "hold NaN/inf" in info.value.problem and name in info.value.problem
+    # An exported TorchScript model likewise.
+    with torch.no_grad():
+        dict(net.named_parameters())[name].fill_(float("nan"))
+    torch.jit.save(torch.jit.script(DepthPredictor(net).eval()), str(tmp_path / "nan.ts"))
+    with pytest.raises(CheckpointError, match=r"nan\.ts: 1 weight tensor\(s\) hold NaN/inf"):
+        load_depth_source(tmp_path / "nan.ts")
+    # And such a network is not saved in the first place.
+    with pytest.raises(CheckpointError, match=r"bad\.pt: refusing to save .*NaN/inf"):
+        save_checkpoint(tmp_path / "bad.pt", net)
+    assert not (tmp_path / "bad.pt").exists()
+
+
+def test_diverging_finetune_stops_with_an_error_and_keeps_the_checkpoint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from test_depth import TINY, make_sequence
+
+    from chisel.depth.checkpoint import save_checkpoint
+    from chisel.depth.network import DepthNet
+
+    seq = make_sequence(tmp_path / "s", 1000, frames=4, with_mask=False)
+    parent = save_checkpoint(tmp_path / "parent.pt", DepthNet(TINY))
+    out = tmp_path / "tuned.pt"
+    out.write_bytes(b"an earlier fine-tuned checkpoint")
+    argv = ["depth", "finetune", "--checkpoint", str(parent), "--sequence", str(seq)]
+    argv += ["--out", str(out), "--epochs", "2", "--batch-size", "2", "--threads", "1"]
+    rc = chisel_main([*argv, "--lr", "1e6", "--no-augment"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "training diverged at epoch 1" in err and "Traceback" not in err
+    assert out.read_bytes() == b"an earlier fine-tuned checkpoint"

@@ -36,6 +36,15 @@ def _json_able(info: dict[str, Any], source: str) -> dict[str, Any]:
         raise InvalidInputError(source, f"checkpoint info must be JSON-able: {exc}") from None
 
 
+def nonfinite_tensors(tensors: dict[str, torch.Tensor]) -> list[str]:
+    """Names of the floating-point tensors in ``tensors`` holding NaN or inf."""
+    return [
+        k
+        for k, v in tensors.items()
+        if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all())
+    ]
+
+
 def sidecar_path(path: str | Path) -> Path:
     """The ``.json`` that :func:`save_checkpoint` writes beside the checkpoint ``path``."""
     return Path(path).with_suffix(".json")
@@ -50,6 +59,15 @@ def save_checkpoint(path: str | Path, net: DepthNet, info: dict[str, Any] | None
     if path.suffix != ".pt":
         raise InvalidInputError(path, f"checkpoint file must end in .pt, got {path.suffix!r}")
     info = _json_able(dict(info or {}), str(path))
+    bad = nonfinite_tensors(dict(net.state_dict()))
+    if bad:
+        # A network with NaN weights predicts no valid pixel; saving it would only move
+        # the failure to whoever loads it.
+        raise CheckpointError(
+            path,
+            f"refusing to save a network with NaN/inf in {len(bad)} tensor(s), e.g. "
+            f"{bad[:3]} (training diverged?)",
+        )
     payload = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -130,6 +148,14 @@ def load_checkpoint(
             path,
             "weights do not match the architecture "
             f"{(config or stored).to_dict()}: " + "; ".join(problems),
+        )
+    bad = nonfinite_tensors(state)
+    if bad:
+        raise CheckpointError(
+            path,
+            f"{len(bad)} weight tensor(s) hold NaN/inf, e.g. {bad[:3]}: the network would "
+            "predict no valid depth (a diverged training run?); retrain with a lower --lr "
+            "or use an earlier checkpoint",
         )
     net.load_state_dict(state, strict=True)
     net.eval()

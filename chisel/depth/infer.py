@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from chisel.core.atomic import atomic_path
 from chisel.core.errors import InvalidInputError
-from chisel.depth.checkpoint import CheckpointError, load_checkpoint
+from chisel.depth.checkpoint import CheckpointError, load_checkpoint, nonfinite_tensors
 from chisel.depth.metrics import DepthMetrics, MetricAccumulator
 from chisel.depth.network import DepthPredictor
 from chisel.depth.train import resolve_device
@@ -119,6 +119,14 @@ def load_depth_source(
                 module = torch.jit.load(str(path), map_location="cpu")
         except RuntimeError as exc:
             raise CheckpointError(path, f"cannot load TorchScript model: {exc}") from None
+        tensors = dict(module.named_parameters()) | dict(module.named_buffers())
+        bad = nonfinite_tensors(tensors)
+        if bad:
+            raise CheckpointError(
+                path,
+                f"{len(bad)} weight tensor(s) hold NaN/inf, e.g. {bad[:3]}: the network "
+                "would predict no valid depth",
+            )
         return NetworkDepthSource(module, device, f"torchscript {path}")
     predictor, _ = load_predictor(path)
     if script:

@@ -21,7 +21,8 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from chisel.core.errors import InvalidInputError
+from chisel.core.errors import InvalidInputError, TrainingDivergedError
+from chisel.depth.checkpoint import nonfinite_tensors
 from chisel.depth.data import AugmentConfig, FrameSet, augment, downsample_targets
 from chisel.depth.losses import depth_loss
 from chisel.depth.metrics import DepthMetrics, MetricAccumulator
@@ -180,6 +181,14 @@ def evaluate_frames(
     return acc.result()
 
 
+def _diverged(what: str, epoch: int, step: int | None, cfg: TrainConfig) -> TrainingDivergedError:
+    where = f"epoch {epoch}" + ("" if step is None else f", step {step + 1}")
+    return TrainingDivergedError(
+        f"training diverged at {where}: {what} (learning rate {cfg.lr:g} too high?); "
+        "stopped without saving, so an earlier checkpoint at the output path is kept"
+    )
+
+
 def train(
     frames: FrameSet,
     cfg: TrainConfig,
@@ -193,7 +202,9 @@ def train(
     frames : training frames (RGB uint8, depth mm, validity). val_frames : optional
     held-out frames; the epoch with the lowest validation abs-rel is returned.
     net_config : architecture for a new network (ignored when ``init`` is given).
-    ``init`` is not modified; a copy is trained.
+    ``init`` is not modified; a copy is trained. A non-finite loss or weights stop the
+    run with :class:`~chisel.core.errors.TrainingDivergedError` (nothing is returned to
+    save, so an earlier checkpoint is kept).
     """
     if len(frames) == 0:
         raise InvalidInputError("frames", "no training frames")
@@ -241,6 +252,8 @@ def train(
                 loss, parts = depth_loss(
                     log_pred, depth, valid, cfg.si_lambda, cfg.grad_weight, cfg.grad_scales
                 )
+                if not bool(torch.isfinite(loss.detach())):
+                    raise _diverged(f"the loss is {float(loss.detach())}", epoch, s, cfg)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -248,6 +261,9 @@ def train(
                 sums["loss"] += float(loss.detach())
                 sums["si"] += parts["si"]
                 sums["grad"] += parts["grad"]
+            bad = nonfinite_tensors(dict(net.state_dict()))
+            if bad:
+                raise _diverged(f"{len(bad)} weight tensor(s) hold NaN/inf", epoch, None, cfg)
             row = {k: v / steps_per_epoch for k, v in sums.items()}
             row["epoch"] = epoch
             row["lr"] = float(opt.param_groups[0]["lr"])
