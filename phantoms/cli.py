@@ -27,8 +27,9 @@ Outputs in OUT (written to a temporary folder beside it, then renamed; an existi
 is replaced only when everything succeeded):
   phantom.json                  manifest: seed, shape parameters, steps, ROI box,
                                 target lamella, airway path, CT description
-  meshes/step_NN.ply            tissue solid after NN bites (closed manifold, mm)
-  meshes/cutter_NN.ply          the cutter of bite NN (mm)
+  meshes/step_NN.ply            tissue solid after step NN (closed manifold, mm)
+  meshes/step_NN_cut_faces.npy  uint8 per face of step_NN.ply: 1 = a face a cut created
+  meshes/cutter_NN.ply          the cutter of step NN (mm; ragged for the procedures)
   ct/step_NN_label.nii.gz       label map, uint8: 0 air, 1 soft tissue, 2 bone
   ct/step_NN_hu.nii.gz          Hounsfield-like volume, int16: air -1000, soft tissue
                                 40, bone 700, partial volume at surfaces (the
@@ -63,13 +64,25 @@ def build_parser() -> argparse.ArgumentParser:
     gen = sub.add_parser(
         "generate",
         help="generate a phantom: meshes, CT volumes and a manifest per surgical step",
-        description="Generate a seeded nasal-sinus phantom and a plan of sequential bites.",
+        description="Generate a seeded nasal-sinus phantom and the steps of a surgical procedure: "
+        "uncinectomy (default; 1-8 steps, default 5), ethmoidectomy (uncinectomy, then the ethmoid "
+        "bulla's anterior wall and the walls between anterior ethmoid cells; 4-12 steps) or bites "
+        "(small overlapping forceps bites on --target, the fine-change regime; 1-20 steps).",
         epilog=_GENERATE_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     gen.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
     gen.add_argument(
-        "--bites", type=int, default=5, help="number of sequential bites, 1-20 (default 5)"
+        "--bites",
+        type=int,
+        default=5,
+        help="number of surgical steps (fragments or bites; default 5): uncinectomy 1-8, "
+        "ethmoidectomy 4-12, bites 1-20",
+    )
+    gen.add_argument(
+        "--procedure",
+        default="uncinectomy",
+        help="uncinectomy (default), ethmoidectomy or bites; see docs/phantoms.md",
     )
     gen.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
     gen.add_argument(
@@ -131,7 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument(
         "--plan",
         type=Path,
-        help="JSON list of bites (center_mm, size_mm, R_world_from_cutter, shape) to use instead of the planned ones",
+        help="JSON list of steps to use instead of the planned ones: each a bite (center_mm, size_mm, "
+        'R_world_from_cutter, shape) or {"bites": [bite, ...]} (one fragment of several bites); '
+        "checked against --procedure's structures",
     )
     gen.set_defaults(func=_cmd_generate)
 
@@ -155,43 +170,61 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _load_plan(path: Path):
+def _load_bite(b, where: str):
     from phantoms.bites import Bite
 
+    try:
+        return Bite(
+            center_mm=tuple(b["center_mm"]),
+            size_mm=tuple(b["size_mm"]),
+            R_world_from_cutter=tuple(
+                tuple(r) for r in b.get("R_world_from_cutter", [[1, 0, 0], [0, 1, 0], [0, 0, 1]])
+            ),
+            shape=b.get("shape", "ellipsoid"),
+        )
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ParameterRangeError(
+            where, f"expected center_mm and size_mm lists of numbers: {exc}"
+        ) from None
+
+
+def _load_plan(path: Path):
+    """Plan entries: a bite object, or {"bites": [...]} / a list of bites (one fragment)."""
     try:
         raw = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise ParameterRangeError(path, f"cannot read the bite plan: {exc}") from None
     if not isinstance(raw, list) or not raw:
         raise ParameterRangeError(path, "expected a non-empty JSON list of bites")
-    bites = []
-    for i, b in enumerate(raw):
-        try:
-            bites.append(
-                Bite(
-                    center_mm=tuple(b["center_mm"]),
-                    size_mm=tuple(b["size_mm"]),
-                    R_world_from_cutter=tuple(
-                        tuple(r)
-                        for r in b.get("R_world_from_cutter", [[1, 0, 0], [0, 1, 0], [0, 0, 1]])
-                    ),
-                    shape=b.get("shape", "ellipsoid"),
-                )
-            )
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ParameterRangeError(
-                f"{path} bite {i}", f"expected center_mm and size_mm lists of numbers: {exc}"
-            ) from None
-    return bites
+    steps = []
+    for i, entry in enumerate(raw):
+        where = f"{path} bite {i}"
+        group = entry.get("bites") if isinstance(entry, dict) and "bites" in entry else entry
+        if isinstance(group, list):
+            if not group:
+                raise ParameterRangeError(where, "expected at least one bite in the fragment")
+            steps.append([_load_bite(b, f"{where}.{j}") for j, b in enumerate(group)])
+        else:
+            steps.append(_load_bite(entry, where))
+    return steps
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
     from phantoms.generate import generate
     from phantoms.params import PhantomConfig
+    from phantoms.procedures import PROCEDURES, STEP_RANGES
 
     bites = _load_plan(args.plan) if args.plan else None
+    if bites and args.procedure in PROCEDURES:
+        lo, hi = STEP_RANGES[args.procedure]
+        if not lo <= len(bites) <= hi:
+            raise ParameterRangeError(
+                f"--plan {args.plan}",
+                f"{len(bites)} steps; procedure {args.procedure} takes {lo}-{hi}",
+            )
     cfg = PhantomConfig(
         seed=args.seed,
+        procedure=args.procedure,
         n_bites=len(bites) if bites else args.bites,
         target=args.target,
         bite_size_mm=tuple(args.bite_size_mm),
@@ -204,7 +237,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         tet_edge_mm=args.tet_edge_mm,
         overrides=dict(args.param),
     )
-    out = generate(cfg, args.out, bites=bites, show_progress=True)
+    out = generate(cfg, args.out, bites=bites, show_progress=True, plan_source=f"{args.plan} bite")
     sys.stderr.write(f"phantom written to {out}\n")
     return 0
 

@@ -49,3 +49,12 @@ class OutputError(PhantomError):
 
 class AnatomyError(PhantomError):
     """The sampled anatomy violates a constraint (e.g. no airway path with clearance)."""
+
+
+class UnknownProcedureError(PhantomError):
+    """The requested surgical procedure does not exist."""
+
+
+class ProcedureError(PhantomError):
+    """A procedure (or plan) cannot be carried out on this phantom: no wall in reach, a
+    fragment that misses the tissue or cuts beyond the procedure's structures."""

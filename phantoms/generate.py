@@ -18,7 +18,7 @@ import manifold3d as m3d
 import numpy as np
 
 from phantoms.anatomy import Anatomy, arrays_from_manifold, build_anatomy
-from phantoms.bites import Bite, Target, apply_bites, find_target, plan_bites
+from phantoms.bites import Bite, Target, find_target
 from phantoms.ct import (
     HU_AIR,
     HU_BONE,
@@ -42,11 +42,13 @@ from phantoms.io import (
     atomic_write_bytes,
     check_output_dir,
     json_bytes,
+    npy_bytes,
     ply_bytes,
     rounded,
 )
 from phantoms.params import PARAM_RANGES, PhantomConfig, sample_params
 from phantoms.path import airway_path
+from phantoms.procedures import Fragment, cut_steps, plan_allowed_region, plan_procedure
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +78,10 @@ class Step:
     """(nx, ny, nz) int16 Hounsfield-like units."""
     cutter_vertices_mm: np.ndarray | None = None
     cutter_faces: np.ndarray | None = None
+    cut_faces: np.ndarray | None = None
+    """(F,) bool: True where the face was created by a cutter of this or an earlier step."""
+    fragment: Fragment | None = None
+    """The step's fragment (None for the preoperative step)."""
     tet_points_mm: np.ndarray | None = None
     """(P, 3) float64, mm; only with ``config.tet``."""
     tets: np.ndarray | None = None
@@ -91,6 +97,7 @@ class Phantom:
     anatomy: Anatomy
     target: Target
     bites: tuple[Bite, ...]
+    """The first bite of each step (for a procedure's ragged fragments: empty)."""
     steps: tuple[Step, ...]
     grid: CTGrid
     roi_min_mm: np.ndarray
@@ -99,37 +106,64 @@ class Phantom:
     """(N, 3) float64, mm."""
 
 
+def _plan_fragment(entry, target: str) -> Fragment:
+    """A plan entry (one :class:`Bite` or a sequence of bites = one fragment) as a step."""
+    if isinstance(entry, Fragment):
+        return entry
+    if isinstance(entry, Bite):
+        return Fragment("bites", target, {}, (entry,))
+    return Fragment("bites", target, {"n_bites": len(entry)}, tuple(entry))
+
+
 def build_phantom(
     config: PhantomConfig,
-    bites: list[Bite] | None = None,
+    bites: list | None = None,
     progress: Callable[[str], None] | None = None,
+    plan_source: str = "plan bite",
 ) -> Phantom:
     """Generate the anatomy, apply the bite plan, and voxelise every step.
 
     Parameters
     ----------
     config : PhantomConfig
-    bites : list of Bite, optional
-        An explicit surgical plan; by default :func:`phantoms.bites.plan_bites` makes
-        ``config.n_bites`` bites on ``config.target``.
+    bites : list, optional
+        An explicit surgical plan, one entry per step: a :class:`Bite`, or a list of bites
+        taken together as one fragment. It is checked against ``config.procedure``'s
+        structures (errors name ``"<plan_source> entry i"``). By default the procedure
+        (:func:`phantoms.procedures.plan_procedure`) plans ``config.n_bites`` steps.
     progress : callable, optional
         Called with a short message as each stage finishes.
 
     Raises
     ------
-    BiteMissError, UnknownTargetError, AnatomyError, ParameterRangeError
+    ProcedureError, UnknownTargetError, AnatomyError, ParameterRangeError
     """
     note = progress or (lambda _msg: None)
+    bites_given = bites
     params = sample_params(config.seed, config.overrides)
     anatomy = build_anatomy(params, config.seed, config.mesh_edge_mm)
     note("anatomy")
     if bites is None:
-        target, bites = plan_bites(
-            anatomy, config.target, config.n_bites, config.bite_size_mm, config.seed
+        target, fragments, results = plan_procedure(
+            anatomy,
+            config.procedure,
+            config.n_bites,
+            config.seed,
+            config.target,
+            config.bite_size_mm,
         )
     else:
         target, _, _ = find_target(anatomy, config.target)
-    results = apply_bites(anatomy.tissue, bites, edge_mm=min(config.mesh_edge_mm, 0.3))
+        fragments = [_plan_fragment(b, config.target) for b in bites]
+        results = cut_steps(
+            anatomy,
+            fragments,
+            config.procedure,
+            allowed=plan_allowed_region(anatomy, config.procedure, config.target),
+            where=f"{plan_source} {{i}}",
+            edge_mm=min(config.mesh_edge_mm, 0.3),
+        )
+    bites = [f.bites[0] for f in fragments if f.bites]
     note("bites")
 
     roi_lo = (
@@ -150,11 +184,12 @@ def build_phantom(
     )
     noise = ct_noise(grid.shape, config.noise_hu, config.seed)
 
+    step_name = "bite" if config.procedure == "bites" or bites_given is not None else "fragment"
     solids: list[tuple[str, m3d.Manifold, float, m3d.Manifold | None]] = [
         ("preop", anatomy.tissue, 0.0, None)
     ]
     solids += [
-        (f"bite_{k}", r.tissue, r.removed_volume_mm3, r.cutter)
+        (f"{step_name}_{k}", r.tissue, r.removed_volume_mm3, r.cutter)
         for k, r in enumerate(results, start=1)
     ]
     steps: list[Step] = []
@@ -195,6 +230,8 @@ def build_phantom(
                 hu=hu_from_sd(sd, config.spacing_mm, config.mucosa_mm, noise),
                 cutter_vertices_mm=cv,
                 cutter_faces=cf,
+                cut_faces=np.zeros(len(f), bool) if k == 0 else results[k - 1].cut_faces,
+                fragment=None if k == 0 else fragments[k - 1],
                 tet_points_mm=tet_pts,
                 tets=tets,
             )
@@ -226,10 +263,15 @@ def manifest(ph: Phantom) -> dict:
         entry["ct_hu"] = f"ct/step_{k:02d}_hu.nii.gz"
         if st.tets is not None:
             entry["tet_mesh"] = f"tet/step_{k:02d}.vtu"
+        entry["cut_faces"] = f"meshes/step_{k:02d}_cut_faces.npy"
+        entry["cut_face_count"] = int(st.cut_faces.sum()) if st.cut_faces is not None else 0
         entry["volume_mm3"] = st.volume_mm3
         entry["removed_volume_mm3"] = st.removed_volume_mm3
-        if k > 0:
-            entry["bite"] = ph.bites[k - 1].to_dict()
+        if st.fragment is not None:
+            entry["structure"] = st.fragment.params.get("structure_label", st.fragment.structure)
+            if st.fragment.bites:
+                entry["bite"] = st.fragment.bites[0].to_dict()
+            entry["fragment"] = st.fragment.to_dict()
         steps.append(entry)
     a = ph.anatomy
     cfg = asdict(ph.config)
@@ -256,6 +298,7 @@ def manifest(ph: Phantom) -> dict:
             "format": FORMAT,
             "version": VERSION,
             "seed": ph.config.seed,
+            "procedure": ph.config.procedure,
             "params": params,
             "param_ranges": {k: [lo, hi] for k, (lo, hi, _) in PARAM_RANGES.items()},
             "world_frame": WORLD_FRAME,
@@ -295,6 +338,14 @@ def write_phantom(
             atomic_write_bytes(
                 tmp / f"meshes/step_{k:02d}.ply", ply_bytes(st.vertices_mm, st.faces)
             )
+            atomic_write_bytes(
+                tmp / f"meshes/step_{k:02d}_cut_faces.npy",
+                npy_bytes(
+                    (
+                        np.zeros(len(st.faces), bool) if st.cut_faces is None else st.cut_faces
+                    ).astype(np.uint8)
+                ),
+            )
             if st.cutter_vertices_mm is not None:
                 atomic_write_bytes(
                     tmp / f"meshes/cutter_{k:02d}.ply",
@@ -322,8 +373,9 @@ def write_phantom(
 def generate(
     config: PhantomConfig,
     out_dir: str | Path,
-    bites: list[Bite] | None = None,
+    bites: list | None = None,
     show_progress: bool = False,
+    plan_source: str = "plan bite",
 ) -> Path:
     """Build a phantom and write it to ``out_dir`` (replaced only on success).
 
@@ -345,7 +397,7 @@ def generate(
             bar.update(1)
 
     try:
-        ph = build_phantom(config, bites, note)
+        ph = build_phantom(config, bites, note, plan_source)
         return write_phantom(ph, out_dir, note)
     finally:
         if bar is not None:

@@ -125,6 +125,15 @@ def ply_bytes(vertices_mm: np.ndarray, faces: np.ndarray) -> bytes:
     return header + v.tobytes() + face_rec.tobytes()
 
 
+def npy_bytes(array: np.ndarray) -> bytes:
+    """``np.save`` bytes of an array (deterministic; read with ``np.load``, no pickle)."""
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
 def json_bytes(obj: object) -> bytes:
     """Deterministic pretty JSON (keys in insertion order, newline at the end)."""
     return (json.dumps(obj, indent=1) + "\n").encode("utf-8")

@@ -179,7 +179,11 @@ class PhantomConfig:
     seed: int = 0
     """Seed of every random choice (anatomy, bite plan, CT noise)."""
     n_bites: int = 5
-    """Number of sequential bites of the surgical plan (1-20)."""
+    """Number of surgical steps (fragments or bites); the range depends on the procedure
+    (:data:`phantoms.procedures.STEP_RANGES`: uncinectomy 1-8, ethmoidectomy 4-12, bites 1-20)."""
+    procedure: str = "uncinectomy"
+    """Surgical procedure: ``uncinectomy`` (default), ``ethmoidectomy`` or ``bites``
+    (the small overlapping bites on ``target``); see ``docs/phantoms.md``."""
     target: Literal["uncinate", "bulla", "basal_lamella"] = "uncinate"
     """Lamella the bites perforate; see :data:`TARGETS`."""
     bite_size_mm: tuple[float, float] = (2.0, 5.0)
@@ -203,14 +207,9 @@ class PhantomConfig:
 
     def __post_init__(self) -> None:
         check_seed(self.seed)
-        if isinstance(self.n_bites, bool) or not isinstance(self.n_bites, int | np.integer):
-            raise ParameterRangeError(
-                "n_bites", f"expected an integer in [1, 20], got {self.n_bites!r}"
-            )
-        if not 1 <= self.n_bites <= 20:
-            raise ParameterRangeError(
-                "n_bites", f"expected an integer in [1, 20], got {self.n_bites}"
-            )
+        from phantoms.procedures import check_procedure  # noqa: PLC0415 - import cycle
+
+        check_procedure(self.procedure, self.n_bites)
         if self.target not in TARGETS:
             raise UnknownTargetError(
                 "target",

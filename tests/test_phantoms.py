@@ -1,6 +1,7 @@
 """End-to-end tests of ``python -m phantoms generate`` on the default phantom.
 
-One default phantom (seed 0, 5 bites on the uncinate, 0.5 mm CT) is generated per test
+One phantom of the fine-change regime (seed 0, ``--procedure bites``: 5 bites on the
+uncinate, 0.5 mm CT) is generated per test
 session worker and checked against independent references: trimesh for watertightness and
 volumes, trimesh ray tests for voxel-in-mesh, manifold3d / Monte Carlo for the removed
 volumes, scikit-image marching cubes for the CT surface.
@@ -27,7 +28,8 @@ from phantoms.params import PARAM_RANGES
 @pytest.fixture(scope="module")
 def default_dir(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("phantom") / "seed0"
-    assert main(["generate", "--seed", "0", "--bites", "5", "--out", str(out)]) == 0
+    args = ["generate", "--seed", "0", "--procedure", "bites", "--bites", "5", "--out", str(out)]
+    assert main(args) == 0
     return out
 
 

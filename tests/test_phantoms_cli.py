@@ -31,7 +31,16 @@ from phantoms.params import PhantomConfig, sample_params
 from phantoms.surface import load_tissue
 from phantoms.tet import read_vtu, repair_surface, tet_volumes
 
-COARSE = ["--spacing-mm", "1.0", "--mesh-edge-mm", "1.0", "--mucosa-mm", "1.5"]
+COARSE = [
+    "--spacing-mm",
+    "1.0",
+    "--mesh-edge-mm",
+    "1.0",
+    "--mucosa-mm",
+    "1.5",
+    "--procedure",
+    "bites",
+]
 
 
 def _digest(folder: Path) -> dict[str, str]:
@@ -92,7 +101,7 @@ def test_same_seed_gives_identical_bytes_another_seed_other_anatomy(coarse_dir, 
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     first, second = _digest(coarse_dir), _digest(again)
-    assert len(first) == 1 + 3 + 2 + 3 * 2  # manifest, 3 steps, 2 cutters, 3 x 2 volumes
+    assert len(first) == 1 + 3 + 3 + 2 + 3 * 2  # manifest, 3 steps + cut faces, 2 cutters, volumes
     assert first == second
     other = tmp_path / "other"
     assert main(["generate", "--seed", "4", "--bites", "2", "--out", str(other), *COARSE]) == 0
@@ -211,7 +220,9 @@ def test_a_plan_that_misses_the_tissue_raises_and_leaves_old_output(coarse_dir, 
     plan.write_text(json.dumps([good, in_air]))
     with pytest.raises(BiteMissError) as info:
         generate(
-            PhantomConfig(seed=3, spacing_mm=1.0, mesh_edge_mm=1.0, mucosa_mm=1.5),
+            PhantomConfig(
+                seed=3, spacing_mm=1.0, mesh_edge_mm=1.0, mucosa_mm=1.5, procedure="bites"
+            ),
             out,
             bites=[
                 Bite(
@@ -225,7 +236,7 @@ def test_a_plan_that_misses_the_tissue_raises_and_leaves_old_output(coarse_dir, 
                 ),
             ],
         )
-    assert info.value.source == "bite 2" and "misses the tissue" in str(info.value)
+    assert info.value.source == "plan bite 1" and "misses the tissue" in str(info.value)
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "plan.json"]
     # the same through the CLI's --plan

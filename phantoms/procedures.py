@@ -1,0 +1,612 @@
+"""Surgical procedures: FESS progressions as a sequence of ragged tissue fragments.
+
+A *procedure* is a list of steps; each step removes one *fragment* (the tissue that one
+or several forceps bites take out) with a closed, seeded, irregular cutter solid, and the
+step's tissue is the previous one minus that cutter (manifold3d), so the steps are nested
+by construction. Procedures (``docs/phantoms.md``, "Procedures"):
+
+* ``uncinectomy``: the uncinate process (the airway-facing cap of the infundibulum's wall)
+  is taken in ``n`` fragments from its free (inferior) edge upward, until the infundibulum
+  and the view towards the maxillary ostium lie open.
+* ``ethmoidectomy``: a shorter uncinectomy, then the anterior wall of the ethmoid bulla in
+  fragments, then the walls between the bulla and the neighbouring anterior ethmoid cells.
+* ``bites``: the small overlapping bites of :func:`phantoms.bites.plan_bites` (the fine
+  change regime).
+
+Every face a cutter creates is labelled (manifold3d keeps each triangle's original mesh
+id): :func:`cut_steps` returns per step a boolean mask over the step mesh's faces.
+
+Before a step is accepted it is checked: it must remove tissue, stay inside the
+procedure's structures (the wall shells of the cells it opens) and keep away from the
+tissue block's outer faces; otherwise :class:`~phantoms.errors.ProcedureError` names the
+procedure (or plan entry) and the step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import manifold3d as m3d
+import numpy as np
+
+from phantoms.anatomy import Anatomy, SphereCell, arrays_from_manifold, manifold_from_arrays
+from phantoms.bites import Bite, cutter_manifold, plan_bites
+from phantoms.errors import (
+    BiteMissError,
+    ParameterRangeError,
+    ProcedureError,
+    UnknownProcedureError,
+)
+
+PROCEDURES: tuple[str, ...] = ("uncinectomy", "ethmoidectomy", "bites")
+"""Procedures ``python -m phantoms generate --procedure`` accepts (first = default)."""
+
+STEP_RANGES: dict[str, tuple[int, int]] = {
+    "uncinectomy": (1, 8),
+    "ethmoidectomy": (4, 12),
+    "bites": (1, 20),
+}
+"""Allowed number of steps (``--bites N``) per procedure."""
+
+FRAGMENT_SHARE_RANGE = (0.7, 1.3)
+"""Relative height of one fragment of a cap (normalised over the fragments)."""
+BITES_PER_FRAGMENT = (1, 3)
+"""Forceps bites per fragment (the scallops of its cut edge)."""
+RAGGED_MM = (0.35, 0.7)
+"""Amplitude of the irregular cut edge, mm."""
+PROGRESS_ROLL_DEG = 25.0
+"""The direction of progress ("upward") is rolled about the cap axis by up to this."""
+EDGE_TILT_DEG = 12.0
+"""Each fragment's cut edge is tilted against the direction of progress by up to this."""
+WALL_CUT_RADIUS_FRAC = (0.45, 0.7)
+"""Radius of the opening in a wall between two ethmoid cells (fraction of the smaller)."""
+CELL_REACH_MM = 3.5
+"""A neighbouring ethmoid cell is in reach when the tissue between the voids is thinner."""
+OUTSIDE_TOL_MM = 0.6
+"""A fragment may reach this far beyond its structure's wall shell."""
+OUTSIDE_VOLUME_TOL = (0.5, 0.05)
+"""Removed tissue beyond the structures is refused above max(0.5 mm^3, 5 % of the step)."""
+BLOCK_CLEARANCE_MM = 1.0
+"""Removed tissue must stay this far inside the tissue block's outer faces."""
+MIN_REMOVED_MM3 = 0.5
+
+
+def check_procedure(name: object, n_steps: object) -> tuple[str, int]:
+    """Return ``(name, n_steps)`` if the procedure exists and the count is in its range."""
+    if name not in PROCEDURES:
+        raise UnknownProcedureError(
+            "procedure", f"unknown procedure {name!r}; expected one of {', '.join(PROCEDURES)}"
+        )
+    lo, hi = STEP_RANGES[str(name)]
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int | np.integer):
+        raise ParameterRangeError(
+            "n_bites",
+            f"expected an integer number of steps (--bites) in [{lo}, {hi}], got {n_steps!r}",
+        )
+    if not lo <= int(n_steps) <= hi:
+        raise ParameterRangeError(
+            "n_bites",
+            f"procedure {name} takes {lo}-{hi} steps (--bites), got {n_steps}",
+        )
+    return str(name), int(n_steps)
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class Fragment:
+    """One step's cutter: either a ragged cap slice, a ragged wall opening, or bites.
+
+    kind : "cap" (all of a cell's exposed wall below a ragged edge), "wall" (an opening
+    between two cells) or "bites" (a union of :class:`~phantoms.bites.Bite` cutters).
+    structure : the cell whose wall it opens (``infundibulum`` = the uncinate process,
+    ``ethmoid_bulla``, ...), or the plan / target name.
+    """
+
+    kind: str
+    structure: str
+    params: dict = field(default_factory=dict)
+    bites: tuple[Bite, ...] = ()
+
+    def to_dict(self) -> dict:
+        d: dict = {"kind": self.kind, "structure": self.structure}
+        d.update(self.params)
+        if self.bites:
+            d["bites"] = [b.to_dict() for b in self.bites]
+        return d
+
+
+@dataclass(frozen=True)
+class StepCut:
+    """Tissue after one step and what the step removed."""
+
+    tissue: m3d.Manifold
+    cutter: m3d.Manifold
+    removed: m3d.Manifold
+    removed_volume_mm3: float
+    cut_faces: np.ndarray
+    """(F,) bool over the faces of ``arrays_from_manifold(tissue)``: True = a cut face."""
+
+
+# ------------------------------------------------------------------------ geometry
+
+
+def _frame(a: np.ndarray, up_hint: np.ndarray, roll_rad: float) -> np.ndarray:
+    """(3, 3) columns e1 (side), e2 = a (into the airway), e3 (direction of progress)."""
+    a = a / np.linalg.norm(a)
+    u = up_hint - (up_hint @ a) * a
+    if np.linalg.norm(u) < 1e-6:
+        u = np.array([0.0, 1.0, 0.0]) - a[1] * a
+    u /= np.linalg.norm(u)
+    v = np.cross(a, u)
+    c, s = math.cos(roll_rad), math.sin(roll_rad)
+    u, v = c * u + s * v, -s * u + c * v
+    return np.stack([v, a, u], axis=1)
+
+
+def _noise_2d(rng: np.random.Generator, amplitude: float, n_waves: int = 7):
+    """A seeded smooth-plus-jagged 2-D field of peak ~amplitude (mm): wavelengths 0.8-4 mm."""
+    ang = rng.uniform(0, 2 * math.pi, n_waves)
+    lam = rng.uniform(0.8, 4.0, n_waves)
+    k = np.stack([np.cos(ang), np.sin(ang)], axis=1) * (2 * math.pi / lam)[:, None]
+    ph = rng.uniform(0, 2 * math.pi, n_waves)
+    w = rng.uniform(0.5, 1.0, n_waves)
+    w *= amplitude / w.sum() * 2.0
+
+    def f(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(x)
+        for kk, p, ww in zip(k, ph, w, strict=True):
+            out += ww * np.sin(kk[0] * x + kk[1] * y + p)
+        return out
+
+    return f
+
+
+def _heightfield_solid(
+    R_world_from_local: np.ndarray,
+    origin: np.ndarray,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    z_bottom: float,
+    z_top,
+    step_mm: float = 0.25,
+) -> m3d.Manifold:
+    """Closed solid {x, y in the ranges, z_bottom <= z <= z_top(x, y)} in a local frame."""
+    nx = max(2, int(math.ceil((x_range[1] - x_range[0]) / step_mm)) + 1)
+    ny = max(2, int(math.ceil((y_range[1] - y_range[0]) / step_mm)) + 1)
+    xs = np.linspace(*x_range, nx)
+    ys = np.linspace(*y_range, ny)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    Z = z_top(X, Y)
+    top = np.stack([X, Y, Z], axis=-1).reshape(-1, 3)
+    bot = np.stack([X, Y, np.full_like(X, z_bottom)], axis=-1).reshape(-1, 3)
+    verts = np.vstack([top, bot])
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    nt = nx * ny
+    faces = []
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+    # top faces up (+z), bottom faces down
+    faces.append(np.stack([a, b, c], -1).reshape(-1, 3))
+    faces.append(np.stack([a, c, d], -1).reshape(-1, 3))
+    faces.append(np.stack([a + nt, c + nt, b + nt], -1).reshape(-1, 3))
+    faces.append(np.stack([a + nt, d + nt, c + nt], -1).reshape(-1, 3))
+    # four sides: walk the boundary counter-clockwise seen from +z
+    ring = np.concatenate([idx[:, 0], idx[-1, 1:], idx[-2::-1, -1], idx[0, -2:0:-1]])
+    nxt = np.roll(ring, -1)
+    faces.append(np.stack([ring, ring + nt, nxt + nt], -1))
+    faces.append(np.stack([ring, nxt + nt, nxt], -1))
+    f = np.vstack(faces)
+    world = verts @ R_world_from_local.T + origin
+    man = manifold_from_arrays(world, f, "fragment cutter")
+    if man.volume() < 0:  # pragma: no cover - orientation fixed above
+        man = manifold_from_arrays(world, f[:, ::-1], "fragment cutter")
+    return man
+
+
+def _sphere(center, radius: float, edge_mm: float = 0.3) -> m3d.Manifold:
+    n = int(max(32, 4 * math.ceil(2 * math.pi * radius / edge_mm / 4)))
+    return m3d.Manifold.sphere(radius, n).translate(tuple(float(c) for c in center))
+
+
+def _shell(cell: SphereCell, inner_pad: float, outer_pad: float) -> m3d.Manifold:
+    return _sphere(cell.center_mm, cell.outer_radius_mm + outer_pad) - _sphere(
+        cell.center_mm, max(cell.radius_mm - inner_pad, 0.2)
+    )
+
+
+def exposed_cap(tissue: m3d.Manifold, cell: SphereCell, tol_mm: float = 0.05) -> np.ndarray:
+    """(P, 3) unit directions from the cell centre to the faces of the tissue surface that
+    lie on the cell's outer wall sphere (its exposed, airway-facing wall)."""
+    v, f = arrays_from_manifold(tissue)
+    c = np.asarray(cell.center_mm)
+    on = np.abs(np.linalg.norm(v - c, axis=1) - cell.outer_radius_mm) < tol_mm
+    patch = on[f].all(axis=1)
+    cen = v[f[patch]].mean(axis=1) - c
+    return cen / np.linalg.norm(cen, axis=1, keepdims=True)
+
+
+# -------------------------------------------------------------------------- cutters
+
+
+def cap_cutter(anatomy: Anatomy, frag: Fragment) -> m3d.Manifold:
+    """The ragged cutter of a "cap" fragment: the cell's wall shell below a ragged edge."""
+    p = frag.params
+    cell = anatomy.cell(frag.structure)
+    R = np.asarray(p["R_world_from_local"], float)
+    c = np.asarray(cell.center_mm, float)
+    ro = cell.outer_radius_mm
+    rng = np.random.default_rng([int(p["edge_seed"]), 0xC07])
+    noise = _noise_2d(rng, float(p["ragged_mm"]))
+    n_b = int(p["n_bites"])
+    level, tilt = float(p["level_mm"]), math.tan(math.radians(float(p["edge_tilt_deg"])))
+    span = 2.0 * ro + 4.0
+    scallop = 0.6 * float(p["ragged_mm"]) + 0.4
+
+    def top(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        phase = (x + span / 2) / span * n_b * math.pi
+        return level + tilt * x + noise(x, y) - scallop * (1.0 - np.abs(np.sin(phase)))
+
+    box = _heightfield_solid(
+        R, c, (-span / 2, span / 2), (float(p["depth_min_mm"]), ro + 2.0), -ro - 2.0, top
+    )
+    return (box ^ _shell(cell, 0.4, 0.5)).as_original()
+
+
+def wall_cutter(anatomy: Anatomy, frag: Fragment) -> m3d.Manifold:
+    """The ragged cutter of a "wall" fragment: a warped capsule from one cell to the other."""
+    p = frag.params
+    a = np.asarray(anatomy.cell(frag.structure).center_mm, float)
+    b = np.asarray(anatomy.cell(p["into"]).center_mm, float)
+    r = float(p["radius_mm"])
+    caps = [_sphere(a, r, 0.35), _sphere(b, r, 0.35)]
+    hull = m3d.Manifold.batch_hull(caps).refine_to_length(0.35)
+    rng = np.random.default_rng([int(p["edge_seed"]), 0xA11])
+    amp = float(p["ragged_mm"])
+    dirs = rng.normal(size=(6, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    lam = rng.uniform(0.8, 3.0, 6)
+    ph = rng.uniform(0, 2 * math.pi, 6)
+    axis = (b - a) / np.linalg.norm(b - a)
+
+    def warp(v: np.ndarray) -> np.ndarray:
+        v = np.asarray(v, float)
+        rel = v - a
+        t = rel @ axis
+        radial = rel - np.outer(t, axis)
+        nrm = np.linalg.norm(radial, axis=1, keepdims=True)
+        unit = np.where(nrm > 1e-9, radial / np.maximum(nrm, 1e-9), 0.0)
+        n = np.zeros(len(v))
+        for d, lm, pp in zip(dirs, lam, ph, strict=True):
+            n += np.sin(2 * math.pi / lm * (v @ d) + pp)
+        return v + unit * (amp / 3.0 * n)[:, None]
+
+    return hull.warp_batch(warp).as_original()
+
+
+def fragment_cutter(anatomy: Anatomy, frag: Fragment, edge_mm: float = 0.3) -> m3d.Manifold:
+    """The closed cutter solid of one step (world mm), marked as an original mesh."""
+    if frag.kind == "cap":
+        return cap_cutter(anatomy, frag)
+    if frag.kind == "wall":
+        return wall_cutter(anatomy, frag)
+    solids = [cutter_manifold(b, edge_mm) for b in frag.bites]
+    return m3d.Manifold.batch_boolean(solids, m3d.OpType.Add).as_original()
+
+
+# ---------------------------------------------------------------------------- plans
+
+
+def _cap_fragments(
+    tissue: m3d.Manifold,
+    cell: SphereCell,
+    structure_label: str,
+    n: int,
+    rng: np.random.Generator,
+    procedure: str,
+    first_step: int,
+    up_hint: np.ndarray,
+) -> list[Fragment]:
+    """``n`` cumulative cap slices of the cell's exposed wall, from bottom to top."""
+    dirs = exposed_cap(tissue, cell)
+    if len(dirs) < 10:
+        raise ProcedureError(
+            f"{procedure} step {first_step}",
+            f"no {structure_label} wall in reach: the {cell.name}'s wall is not exposed to the "
+            "airway (or what the earlier steps opened) in this phantom",
+        )
+    a = dirs.mean(axis=0)
+    a /= np.linalg.norm(a)
+    roll = math.radians(rng.uniform(-PROGRESS_ROLL_DEG, PROGRESS_ROLL_DEG))
+    R = _frame(a, up_hint, roll)
+    ro = cell.outer_radius_mm
+    local = dirs @ R * ro  # (P, 3): side, depth, height on the outer sphere
+    # keep clear of the rim where the wall runs into the lateral wall
+    depth_min = float(np.quantile(local[:, 1], 0.08)) + 0.4
+    inside = local[local[:, 1] >= depth_min]
+    if len(inside) < 10:  # pragma: no cover - a patch always has an interior
+        raise ProcedureError(
+            f"{procedure} step {first_step}", f"the exposed {structure_label} is too small to cut"
+        )
+    h_lo, h_hi = float(inside[:, 2].min()), float(inside[:, 2].max())
+    shares = rng.uniform(*FRAGMENT_SHARE_RANGE, size=n)
+    cum = np.cumsum(shares) / shares.sum()
+    out = []
+    for k in range(n):
+        last = k == n - 1
+        level = h_hi + 3.0 if last else h_lo + (h_hi - h_lo) * float(cum[k])
+        out.append(
+            Fragment(
+                "cap",
+                cell.name,
+                {
+                    "structure_label": structure_label,
+                    "level_mm": round(level, 6),
+                    "depth_min_mm": round(depth_min, 6),
+                    "edge_tilt_deg": round(float(rng.uniform(-EDGE_TILT_DEG, EDGE_TILT_DEG)), 6),
+                    "ragged_mm": round(float(rng.uniform(*RAGGED_MM)), 6),
+                    "n_bites": int(rng.integers(BITES_PER_FRAGMENT[0], BITES_PER_FRAGMENT[1] + 1)),
+                    "edge_seed": int(rng.integers(2**31)),
+                    "R_world_from_local": [[round(float(x), 12) for x in row] for row in R],
+                },
+            )
+        )
+    return out
+
+
+def plan_procedure(
+    anatomy: Anatomy,
+    procedure: str,
+    n_steps: int,
+    seed: int,
+    target: str = "uncinate",
+    bite_size_mm: tuple[float, float] = (2.0, 5.0),
+):
+    """The fragments of a procedure for this anatomy (seeded).
+
+    Returns ``(target, fragments, cuts)``: the :class:`~phantoms.bites.Target` the
+    endoscope views, one :class:`Fragment` per step, and the applied :class:`StepCut`\\ s
+    (the plan depends on what earlier steps opened, so it is cut as it is planned).
+
+    Raises :class:`ProcedureError` naming the procedure and the step when the phantom
+    cannot take it (no wall in reach, a cut beyond the structures).
+    """
+    from phantoms.bites import find_target  # noqa: PLC0415 - avoid a cycle at import
+
+    procedure, n_steps = check_procedure(procedure, n_steps)
+    if procedure == "bites":
+        tgt, bites = plan_bites(anatomy, target, n_steps, bite_size_mm, seed)
+        frags = [Fragment("bites", target, {}, (b,)) for b in bites]
+        allowed = plan_allowed_region(anatomy, procedure, target)
+        cuts = cut_steps(anatomy, frags, procedure, allowed=allowed, edge_mm=0.3)
+        return tgt, frags, cuts
+    rng = np.random.default_rng([int(seed), 0xF355])
+    up = np.array([0.0, 0.0, 1.0])
+    infund = anatomy.cell("infundibulum")
+    tgt, _, _ = find_target(anatomy, "uncinate")
+    if procedure == "uncinectomy":
+        frags = _cap_fragments(
+            anatomy.tissue, infund, "uncinate process", n_steps, rng, procedure, 1, up
+        )
+        frags, cuts = _cut_with_retries(anatomy, frags, procedure, anatomy.tissue, 1, set())
+        return tgt, frags, cuts
+    # ethmoidectomy: uncinectomy, bulla's anterior wall, walls to the neighbouring cells
+    n_u = 2 if n_steps <= 5 else 3
+    n_wall_max = n_steps - n_u - 2
+    bulla = anatomy.cell("ethmoid_bulla")
+    neighbours = _reachable_cells(anatomy, bulla)
+    n_w = min(len(neighbours), max(1, int(rng.integers(1, n_wall_max + 1))))
+    if not neighbours:
+        n_w = 0
+    n_b = n_steps - n_u - n_w
+    ids: set[int] = set()
+    frags = _cap_fragments(anatomy.tissue, infund, "uncinate process", n_u, rng, procedure, 1, up)
+    frags, cuts = _cut_with_retries(anatomy, frags, procedure, anatomy.tissue, 1, ids)
+    tissue = cuts[-1].tissue
+    b_frags = _cap_fragments(tissue, bulla, "ethmoid bulla", n_b, rng, procedure, n_u + 1, up)
+    b_frags, b_cuts = _cut_with_retries(anatomy, b_frags, procedure, tissue, n_u + 1, ids)
+    cuts += b_cuts
+    frags += b_frags
+    if n_steps - n_u - n_b > 0 and not neighbours:
+        raise ProcedureError(
+            f"{procedure} step {n_u + n_b + 1}",
+            f"no wall between anterior ethmoid cells in reach: no ethmoid cell lies within "
+            f"{CELL_REACH_MM} mm of the opened bulla",
+        )
+    w_frags = []
+    for cell in neighbours[:n_w]:
+        r = min(bulla.radius_mm, cell.radius_mm) * float(rng.uniform(*WALL_CUT_RADIUS_FRAC))
+        w_frags.append(
+            Fragment(
+                "wall",
+                bulla.name,
+                {
+                    "structure_label": f"wall between the ethmoid bulla and {cell.name}",
+                    "into": cell.name,
+                    "radius_mm": round(r, 6),
+                    "ragged_mm": round(float(rng.uniform(*RAGGED_MM)), 6),
+                    "edge_seed": int(rng.integers(2**31)),
+                },
+            )
+        )
+    if w_frags:
+        tissue = cuts[-1].tissue
+        w_frags, w_cuts = _cut_with_retries(anatomy, w_frags, procedure, tissue, n_u + n_b + 1, ids)
+        cuts += w_cuts
+        frags += w_frags
+    return tgt, frags, cuts
+
+
+def _cut_with_retries(anatomy, frags, procedure, tissue, first_step, ids, tries: int = 6):
+    """Cut the fragments in order; a fragment whose ragged edge pinches the tissue (an
+    edge shared by four faces) is redrawn with the next edge seed, up to ``tries`` times."""
+    frags = list(frags)
+    cuts: list[StepCut] = []
+    current = tissue
+    for i in range(len(frags)):
+        for attempt in range(tries):
+            try:
+                cut = cut_steps(
+                    anatomy, [frags[i]], procedure, current, first_step + i, cutter_ids=ids
+                )[0]
+                break
+            except ProcedureError as exc:
+                if "touching itself" not in exc.problem or attempt == tries - 1:
+                    raise
+                p = dict(frags[i].params)
+                p["edge_seed"] = int(p["edge_seed"]) + 1
+                frags[i] = dataclasses.replace(frags[i], params=p)
+        cuts.append(cut)
+        current = cut.tissue
+    return frags, cuts
+
+
+def _reachable_cells(anatomy: Anatomy, bulla: SphereCell) -> list[SphereCell]:
+    """Further ethmoid cells whose void lies within CELL_REACH_MM of the bulla's, nearest first."""
+    out = []
+    for c in anatomy.cells:
+        if not c.name.startswith("ethmoid_cell"):
+            continue
+        gap = (
+            float(np.linalg.norm(np.subtract(c.center_mm, bulla.center_mm)))
+            - c.radius_mm
+            - bulla.radius_mm
+        )
+        if gap <= CELL_REACH_MM:
+            out.append((gap, c.name, c))
+    return [c for _, _, c in sorted(out, key=lambda t: (t[0], t[1]))]
+
+
+def plan_allowed_region(anatomy: Anatomy, procedure: str, target: str) -> m3d.Manifold:
+    """Where a user's plan may cut for a procedure: the wall shells (plus a margin) of the
+    cells the procedure opens (``bites``: the target lamella's cell, 1.6 mm margin, as a
+    bite spans the lamella plus 1.25 mm on either side)."""
+    from phantoms.anatomy import TARGET_CELLS  # noqa: PLC0415
+
+    if procedure == "bites":
+        return _shell(anatomy.cell(TARGET_CELLS[target]), 1.6, 1.6)
+    cells = [anatomy.cell("infundibulum")]
+    if procedure == "ethmoidectomy":
+        bulla = anatomy.cell("ethmoid_bulla")
+        cells.append(bulla)
+        solids = [
+            m3d.Manifold.batch_hull(
+                [
+                    _sphere(bulla.center_mm, bulla.outer_radius_mm + OUTSIDE_TOL_MM, 0.5),
+                    _sphere(c.center_mm, c.outer_radius_mm + OUTSIDE_TOL_MM, 0.5),
+                ]
+            )
+            for c in _reachable_cells(anatomy, bulla)
+        ]
+    else:
+        solids = []
+    solids += [_shell(c, OUTSIDE_TOL_MM, OUTSIDE_TOL_MM) for c in cells]
+    return m3d.Manifold.batch_boolean(solids, m3d.OpType.Add)
+
+
+def _allowed_region(anatomy: Anatomy, frag: Fragment) -> m3d.Manifold:
+    cell = anatomy.cell(frag.structure)
+    if frag.kind == "wall":
+        other = anatomy.cell(frag.params["into"])
+        return m3d.Manifold.batch_hull(
+            [
+                _sphere(cell.center_mm, cell.outer_radius_mm + OUTSIDE_TOL_MM, 0.5),
+                _sphere(other.center_mm, other.outer_radius_mm + OUTSIDE_TOL_MM, 0.5),
+            ]
+        )
+    return _shell(cell, OUTSIDE_TOL_MM, OUTSIDE_TOL_MM)
+
+
+def cut_steps(
+    anatomy: Anatomy,
+    fragments,
+    procedure: str,
+    tissue: m3d.Manifold | None = None,
+    first_step: int = 1,
+    allowed: m3d.Manifold | None | bool = True,
+    where: str | None = None,
+    edge_mm: float = 0.3,
+    cutter_ids: set[int] | None = None,
+) -> list[StepCut]:
+    """Apply the fragments one after the other, checking each step.
+
+    ``allowed``: True = each fragment's own structure (:func:`_allowed_region`), a
+    manifold = that region for every step, None/False = no structure check (only the
+    block check). ``where`` names the source in errors (default ``"<procedure> step k"``;
+    a plan passes ``"<plan file> entry i"``). ``cutter_ids``: original ids of earlier
+    steps' cutters (updated in place), so their faces stay labelled as cut faces.
+    """
+    current = anatomy.tissue if tissue is None else tissue
+    cutter_ids = set() if cutter_ids is None else cutter_ids
+    lo = np.asarray(anatomy.block_min_mm) + BLOCK_CLEARANCE_MM
+    hi = np.asarray(anatomy.block_max_mm) - BLOCK_CLEARANCE_MM
+    out: list[StepCut] = []
+    for i, frag in enumerate(fragments):
+        k = first_step + i
+        name = where.format(i=i, k=k) if where else f"{procedure} step {k}"
+        cutter = fragment_cutter(anatomy, frag, edge_mm)
+        cutter_ids.add(int(cutter.original_id()))
+        removed = current ^ cutter
+        vol = 0.0 if removed.is_empty() else float(removed.volume())
+        if vol < max(MIN_REMOVED_MM3 * 0.1, 0.01 * cutter.volume()):
+            raise BiteMissError(
+                name,
+                f"the fragment removes {vol:.3f} mm^3 of tissue (cutter {cutter.volume():.2f} mm^3): "
+                "it misses the tissue",
+            )
+        box = removed.bounding_box()
+        if np.any(np.asarray(box[:3]) < lo) or np.any(np.asarray(box[3:]) > hi):
+            raise ProcedureError(
+                name,
+                f"the fragment would cut into the tissue block's outer walls (removed tissue "
+                f"spans {np.round(box[:3], 2).tolist()}-{np.round(box[3:], 2).tolist()} mm, the "
+                f"block's faces lie at {list(anatomy.block_min_mm)}-{list(anatomy.block_max_mm)} mm)",
+            )
+        region = _allowed_region(anatomy, frag) if allowed is True else (allowed or None)
+        if region is not None:
+            outside = removed - region
+            out_vol = 0.0 if outside.is_empty() else float(outside.volume())
+            limit = max(OUTSIDE_VOLUME_TOL[0], OUTSIDE_VOLUME_TOL[1] * vol)
+            if out_vol > limit:
+                label = frag.params.get("structure_label", frag.structure)
+                raise ProcedureError(
+                    name,
+                    f"the fragment would cut {out_vol:.2f} mm^3 of tissue beyond the {label} "
+                    f"(at most {limit:.2f} mm^3 allowed): it cuts past the procedure's structures",
+                )
+        after = current - cutter
+        if _pinched(after):
+            raise ProcedureError(
+                name,
+                "the cut leaves tissue touching itself along an edge or at a point (not a "
+                "2-manifold once coincident vertices are merged); move the fragment",
+            )
+        current = after
+        out.append(StepCut(current, cutter, removed, vol, _cut_mask(current, cutter_ids)))
+    # labels accumulate over steps: faces from every earlier cutter stay cut faces
+    return out
+
+
+def _pinched(tissue: m3d.Manifold) -> bool:
+    """True if merging coincident vertices makes an edge shared by more than two faces
+    (trimesh and the simulator merge them when they load a mesh)."""
+    v, f = arrays_from_manifold(tissue)
+    _, inverse = np.unique(v, axis=0, return_inverse=True)
+    g = inverse.reshape(-1)[f]
+    edges = np.sort(np.concatenate([g[:, [0, 1]], g[:, [1, 2]], g[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool((counts > 2).any())
+
+
+def _cut_mask(tissue: m3d.Manifold, cutter_ids: set[int]) -> np.ndarray:
+    mesh = tissue.to_mesh64()
+    run_index = np.asarray(mesh.run_index, dtype=np.int64) // 3  # into tri_verts.ravel()
+    run_ids = np.asarray(mesh.run_original_id, dtype=np.int64)
+    n = len(np.asarray(mesh.tri_verts))
+    mask = np.zeros(n, dtype=bool)
+    for j, oid in enumerate(run_ids):
+        if int(oid) in cutter_ids:
+            mask[run_index[j] : run_index[j + 1]] = True
+    return mask
