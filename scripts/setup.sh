@@ -12,8 +12,10 @@ if [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
 # libllvm19: drjit 1.5 (Mitsuba 3.9) aborts with the system LLVM 15; LLVM 19 works.
 # chromium: the workflow report test opens the HTML report headless.
 # chromium-driver: the report test drives it with selenium to read the browser console.
+# slurm-wlm, munge: scripts/slurm-local.sh starts a single-node SLURM cluster from them
+#   (tests/test_slurm.py runs the smoke experiment through it); Debian 12: SLURM 22.05.
 need=()
-for pkg in libusb-1.0-0 libllvm19 chromium chromium-driver; do
+for pkg in libusb-1.0-0 libllvm19 chromium chromium-driver slurm-wlm munge; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if [ "${#need[@]}" -gt 0 ]; then
