@@ -18,6 +18,14 @@ os.environ.update(
 ENV = "../envs/chisel.yaml"
 RESULTS = f"results/{config['experiment']}"
 SEEDS = [int(s) for s in config["seeds"]]
+if len(SEEDS) != 1:
+    # The default target, sweeps and report describe one phantom; a second seed used to be
+    # silently ignored. Several phantoms are the `table` target's job.
+    raise ValueError(
+        f"config seeds: {config['seeds']}: `seeds` is the one phantom seed of the default "
+        "target (metrics.json, report, sweeps); list several seeds under `table_seeds` and "
+        "run `snakemake table` to evaluate and aggregate them"
+    )
 TABLE_SEEDS = [int(s) for s in config.get("table_seeds", SEEDS)]
 BITES = int(config["phantom"]["bites"])
 STEPS = list(range(1, BITES + 1))

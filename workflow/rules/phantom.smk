@@ -5,6 +5,7 @@ rule phantom:
         f"{RESULTS}/logs/seed_{{seed}}/phantom.log",
     params:
         bites=BITES,
+        procedure=config["phantom"].get("procedure", "uncinectomy"),
         opts=" ".join(
             f"--{flag} {config['phantom'][key]}"
             for key, flag in [
@@ -20,5 +21,6 @@ rule phantom:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m phantoms generate --seed {wildcards.seed} --bites {params.bites} "
+        "python -m phantoms generate --seed {wildcards.seed} --procedure {params.procedure} "
+        "--bites {params.bites} "
         "{params.opts} --out $(dirname {output.manifest}) > {log} 2>&1"
