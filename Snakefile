@@ -14,6 +14,7 @@ include: "workflow/rules/render.smk"
 include: "workflow/rules/preop.smk"
 include: "workflow/rules/update.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/export.smk"
 
 
 rule all:
@@ -21,3 +22,4 @@ rule all:
     input:
         f"{RESULTS}/metrics.json",
         f"{RESULTS}/report.html",
+        rules.ct_exports.input,

@@ -204,3 +204,28 @@ def removed_dice(predicted: np.ndarray, truth: np.ndarray) -> float:
         raise InvalidInputError("removed mask", f"shapes differ: {p.shape} vs {t.shape}")
     total = int(p.sum()) + int(t.sum())
     return 1.0 if total == 0 else 2.0 * int((p & t).sum()) / total
+
+
+def removed_region_scores(
+    before: CtVolume, updated: CtVolume, truth_after: CtVolume
+) -> dict[str, float | int]:
+    """Updated-CT score of the removed region against the true CT after the step.
+
+    before : the preoperative CT the update started from; updated : its export;
+    truth_after : the true CT of the step (label or intensity), all on one grid.
+    Removed = tissue before and not tissue after (labels > 0, or HU above -480).
+    Returns dice, predicted and true removed voxel counts.
+    """
+    for vol in (updated, truth_after):
+        if vol.shape != before.shape or not np.allclose(
+            vol.T_world_from_voxel, before.T_world_from_voxel, atol=1e-4
+        ):
+            raise InvalidInputError(vol.source or "CT", "not on the preoperative CT's grid")
+    t0 = _ct_tissue(before, before.data)
+    pred = t0 & ~_ct_tissue(updated, updated.data)
+    truth = _ct_tissue(before, before.data) & ~_ct_tissue(truth_after, truth_after.data)
+    return {
+        "dice": removed_dice(pred, truth),
+        "predicted_voxels": int(pred.sum()),
+        "true_voxels": int(truth.sum()),
+    }
