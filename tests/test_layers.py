@@ -12,7 +12,6 @@ import ast
 from pathlib import Path
 
 import networkx as nx
-import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("chisel", "sim", "phantoms")
