@@ -1,26 +1,20 @@
 """Exceptions raised at the public entry points of the phantom generator.
 
 Every error names the argument (or file) and the problem, with expected vs actual. All
-derive from :class:`PhantomError`, itself a ``ValueError`` so generic callers can catch
-bad input without importing this module. ``phantoms`` does not import ``chisel``: these
-classes mirror ``chisel.errors`` instead of reusing it.
+derive from :class:`PhantomError`, itself a :class:`chisel.core.errors.InvalidInputError`
+(so a ``ValueError`` and a ``ChiselError``): one family of errors for the whole project.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+from chisel.core.errors import InvalidInputError
 
 
-class PhantomError(ValueError):
+class PhantomError(InvalidInputError):
     """Base class of every error the phantom generator raises on purpose.
 
     ``source`` names the argument, parameter or file; ``problem`` says what is wrong.
     """
-
-    def __init__(self, source: str | Path, problem: str) -> None:
-        self.source = str(source)
-        self.problem = problem
-        super().__init__(f"{self.source}: {problem}")
 
 
 class UnknownParameterError(PhantomError):

@@ -1,8 +1,8 @@
 """Output helpers: atomic folders, deterministic mesh and JSON bytes.
 
-``phantoms`` does not import ``chisel``, so this is its own small copy of the atomic-write
-rule: build in a temporary sibling, then rename; an existing folder is replaced only on
-success, and a failure leaves it (and no half-written sibling) behind.
+Folders go through :func:`chisel.core.atomic.atomic_dir` (``phantoms`` may import
+``chisel.core``): build in a temporary sibling, then swap; an existing folder is replaced
+only on success, and a failure leaves it (and no half-written sibling) behind.
 """
 
 from __future__ import annotations
@@ -10,13 +10,14 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from chisel.core.atomic import atomic_dir as core_atomic_dir
+from chisel.core.errors import InvalidInputError
 from phantoms.errors import OutputError
 
 
@@ -59,32 +60,17 @@ def check_output_dir(path: str | Path) -> Path:
 def atomic_dir(path: str | Path, marker: str = "phantom.json") -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; on success it replaces ``path``.
 
-    An existing non-empty ``path`` without ``marker`` is not an earlier output: it is
-    refused (:class:`OutputError`) rather than deleted.
+    :func:`chisel.core.atomic.atomic_dir` (one-step swap, leftovers of killed runs
+    repaired), with its refusals as :class:`OutputError`: an existing non-empty ``path``
+    without ``marker`` is not an earlier output, and is refused rather than deleted.
     """
     path = check_output_dir(path)
-    if path.is_dir() and not (path / marker).exists() and any(path.iterdir()):
-        raise OutputError(
-            path,
-            f"is a folder with other content (no {marker}, so not an earlier phantom); "
-            "refusing to replace it: choose a new or empty folder",
-        )
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-    try:
+    with contextlib.ExitStack() as stack:
+        try:
+            tmp = stack.enter_context(core_atomic_dir(path, marker))
+        except InvalidInputError as exc:
+            raise OutputError(exc.source, exc.problem) from None
         yield tmp
-        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; give the usual mode
-        old = None
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            if old.exists():
-                shutil.rmtree(old)
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

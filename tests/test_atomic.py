@@ -5,10 +5,13 @@ from __future__ import annotations
 import os
 import signal
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
+import chisel.core.atomic as atomic
 from chisel.core.atomic import atomic_dir, atomic_paths, atomic_write_text, check_output_outside
 from chisel.core.errors import InvalidInputError
 
@@ -119,3 +122,83 @@ def test_atomic_paths_move_together_and_hold_ctrl_c_until_done(
         signal.signal(signal.SIGINT, runner_handler)
     assert moved == ["report.json", "model.npz"]
     assert (a.read_text(), b.read_text()) == ("new report", "new model")
+
+
+def _dead_pid() -> int:
+    proc = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return int(proc.stdout)
+
+
+def test_atomic_dir_swaps_in_one_step_where_the_platform_can(tmp_path: Path, monkeypatch) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    if not atomic.exchange_paths(a, b):
+        pytest.skip("renameat2(RENAME_EXCHANGE) is not available here")
+    out = tmp_path / "out"
+    with atomic_dir(out, "m") as tmp:
+        (tmp / "m").write_text("old")
+
+    def no_replace(*args: object) -> None:
+        raise AssertionError("a two-rename swap")
+
+    monkeypatch.setattr(atomic.os, "replace", no_replace)
+    with atomic_dir(out, "m") as tmp:
+        (tmp / "m").write_text("new")
+    assert (out / "m").read_text() == "new"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out")] == []
+
+
+def test_a_kill_between_the_two_renames_is_repaired_by_the_next_run(tmp_path: Path) -> None:
+    """Without RENAME_EXCHANGE the swap is two renames; SIGKILL between them left the
+    earlier output only under a hidden name. The next run of the same writer restores it
+    (even when that run fails) and removes the dead run's temporary folder."""
+    out = tmp_path / "out"
+    with atomic_dir(out, "m") as tmp:
+        (tmp / "m").write_text("earlier")
+    code = (
+        "import os, signal, sys\n"
+        "import chisel.core.atomic as atomic\n"
+        "atomic.exchange_paths = lambda a, b: False\n"
+        "real = os.replace\n"
+        "def replace(src, dst):\n"
+        "    real(src, dst)\n"
+        "    if '.old-' in str(dst): os.kill(os.getpid(), signal.SIGKILL)\n"
+        "atomic.os.replace = replace\n"
+        "with atomic.atomic_dir(sys.argv[1], 'm') as tmp:\n"
+        "    (tmp / 'm').write_text('new')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(out)], timeout=120)
+    assert proc.returncode == -signal.SIGKILL
+    assert not out.exists()  # the kill fell between the renames
+    hidden = sorted(p.name.split("-")[0] for p in tmp_path.iterdir() if p.name != "out")
+    assert hidden == [".out.old", ".out.tmp"]
+    stale_unknown = tmp_path / ".out.tmp-abcdef"  # an older version's name: no pid
+    stale_unknown.mkdir()
+    live = tmp_path / f".out.tmp-{os.getppid()}-xyz"  # a concurrent, live writer
+    live.mkdir()
+    with pytest.raises(RuntimeError, match="fails"), atomic_dir(out, "m"):
+        raise RuntimeError("this run fails")
+    assert (out / "m").read_text() == "earlier"
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name != "out")
+    assert left == sorted([stale_unknown.name, live.name])
+
+
+def test_stale_leftovers_of_dead_writers_are_removed(tmp_path: Path, caplog) -> None:
+    out = tmp_path / "out"
+    with atomic_dir(out, "m") as tmp:
+        (tmp / "m").write_text("current")
+    dead = _dead_pid()
+    (tmp_path / f".out.old-{dead}").mkdir()
+    (tmp_path / f".out.tmp-{dead}-q1").mkdir()
+    (tmp_path / ".out.tmp-legacy").mkdir()
+    with caplog.at_level("WARNING"), atomic_dir(out, "m") as tmp:
+        (tmp / "m").write_text("next")
+    assert (out / "m").read_text() == "next"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.tmp-legacy", "out"]
+    assert ".out.tmp-legacy is left from an interrupted run; safe to delete" in caplog.text

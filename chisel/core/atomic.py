@@ -7,16 +7,21 @@ through these helpers: write to a temporary sibling, fsync, then ``os.replace``.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
+import logging
 import os
 import shutil
 import signal
 import tempfile
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Literal
 
 from chisel.core.errors import InvalidInputError
+
+log = logging.getLogger(__name__)
 
 
 def check_writable_parent(path: Path) -> None:
@@ -164,12 +169,99 @@ def check_output_outside(out: str | Path, *inputs: str | Path) -> None:
             )
 
 
+_RENAME_EXCHANGE = 2  # linux/fs.h
+_AT_FDCWD = -100
+
+
+def _renameat2() -> Callable[..., int] | None:
+    """libc's ``renameat2`` (Linux, glibc >= 2.28), or None where there is none."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def exchange_paths(a: Path, b: Path) -> bool:
+    """Swap ``a`` and ``b`` in one step (``renameat2(RENAME_EXCHANGE)``); True if done.
+
+    False where the platform or the file system cannot (then nothing has changed): the
+    caller falls back to two renames.
+    """
+    fn = _renameat2()
+    if fn is None:
+        return False
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def _owner_pid(leftover: Path, kind: str) -> int | None:
+    """The writer's pid in ``.NAME.tmp-PID-xxxx`` / ``.NAME.old-PID``, or None."""
+    tail = leftover.name.rsplit(f".{kind}-", 1)[-1]
+    head = tail.split("-", 1)[0]
+    return int(head) if head.isdigit() else None
+
+
+def recover_leftovers(path: Path) -> list[Path]:
+    """Tidy what killed writers of ``path`` left beside it; returns what remains, named.
+
+    A hidden ``.NAME.old-PID`` whose writer is dead holds the earlier output when the kill
+    fell between the two renames of the fallback swap: it is moved back to ``path`` if
+    ``path`` is missing, else deleted. A ``.NAME.tmp-PID-*`` of a dead writer is deleted.
+    Leftovers of live writers (a concurrent run) are left alone; ones without a pid (an
+    older version's) are returned so the caller can name them.
+    """
+    unknown: list[Path] = []
+    parent = path.parent
+    if not parent.is_dir():
+        return unknown
+    olds: list[Path] = []
+    for entry in parent.iterdir():
+        for kind in ("old", "tmp"):
+            if not entry.name.startswith(f".{path.name}.{kind}-") or not entry.is_dir():
+                continue
+            pid = _owner_pid(entry, kind)
+            if pid is None:
+                unknown.append(entry)
+            elif pid != os.getpid() and not _pid_alive(pid):
+                if kind == "old":
+                    olds.append(entry)
+                else:
+                    shutil.rmtree(entry, ignore_errors=True)
+    for old in sorted(olds, key=lambda p: p.stat().st_mtime, reverse=True):
+        if not path.exists():
+            os.replace(old, path)
+            log.warning("%s: restored the earlier output from %s (a killed run)", path, old.name)
+        else:
+            shutil.rmtree(old, ignore_errors=True)
+    return unknown
+
+
 @contextlib.contextmanager
 def atomic_dir(path: str | Path, marker: str) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; on success it replaces ``path``.
 
-    An existing ``path`` is kept until the new folder is complete, then swapped out and
-    deleted. On an exception the temporary folder is removed and ``path`` is untouched.
+    An existing ``path`` is kept until the new folder is complete, then swapped with it in
+    one step (``renameat2(RENAME_EXCHANGE)`` on Linux; elsewhere two renames, and a kill
+    between them is repaired by the next run, :func:`recover_leftovers`) and deleted. On
+    an exception the temporary folder is removed and ``path`` is untouched.
     ``marker`` is the file every folder of this kind holds (``sequence.json``, ...): an
     existing non-empty ``path`` without it is not an earlier output of ours, and is
     refused rather than deleted. Refused as well (:class:`InvalidInputError`): a ``path``
@@ -182,6 +274,8 @@ def atomic_dir(path: str | Path, marker: str) -> Iterator[Path]:
         raise InvalidInputError(
             path, "the output folder holds the current folder; replacing it would delete that"
         )
+    for stale in recover_leftovers(path):
+        log.warning("%s: %s is left from an interrupted run; safe to delete", path, stale)
     if path.is_dir() and not (path / marker).exists() and any(path.iterdir()):
         raise InvalidInputError(
             path,
@@ -189,20 +283,24 @@ def atomic_dir(path: str | Path, marker: str) -> Iterator[Path]:
             "refusing to replace it: choose a new or empty folder",
         )
     check_writable_parent(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-{os.getpid()}-", dir=path.parent))
     # mkdtemp creates 0700; give the final folder the permissions a plain mkdir() would.
     os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
-        old = None
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            if old.exists():
-                shutil.rmtree(old)
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        with deferred_signals():
+            if path.exists() and exchange_paths(tmp, path):
+                pass  # tmp now holds the earlier output; the finally block deletes it
+            else:
+                old = None
+                if path.exists():
+                    old = path.with_name(f".{path.name}.old-{os.getpid()}")
+                    if old.exists():
+                        shutil.rmtree(old)
+                    os.replace(path, old)
+                os.replace(tmp, path)
+                if old is not None:
+                    shutil.rmtree(old, ignore_errors=True)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
