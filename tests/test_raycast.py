@@ -87,3 +87,44 @@ def test_backend_choice() -> None:
         MeshRaycaster.from_trimesh(sphere, "embree")  # type: ignore[arg-type]
     with pytest.raises(InvalidInputError, match="out of range"):
         MeshRaycaster(sphere.vertices, sphere.faces + len(sphere.vertices))
+
+
+def test_surface_queries_match_the_analytic_sphere() -> None:
+    """Open3D's scene queries through SurfaceQueries against a sphere's closed forms."""
+    from chisel.core.raycast import SurfaceQueries
+
+    R = 10.0
+    sphere = trimesh.creation.icosphere(5, radius=R)  # chord error < 0.01 mm
+    q = SurfaceQueries.from_trimesh(sphere)
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(500, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    radii = rng.uniform(2.0, 18.0, size=500)
+    pts = dirs * radii[:, None]
+    np.testing.assert_allclose(q.distance(pts), np.abs(radii - R), atol=0.02)
+    np.testing.assert_allclose(q.signed_distance(pts), radii - R, atol=0.02)
+    np.testing.assert_array_equal(q.inside(pts), radii < R)
+    np.testing.assert_allclose(np.linalg.norm(q.closest_points(pts), axis=1), R, atol=0.02)
+    np.testing.assert_allclose(q.first_hit(np.zeros((500, 3)), dirs), R, atol=0.02)
+    faces = q.first_hit_face(np.zeros((500, 3)), dirs)
+    centroids = sphere.triangles_center[faces]
+    assert np.all(np.degrees(np.arccos(np.clip(np.sum(centroids / R * dirs, 1), -1, 1))) < 2.0)
+    away = q.first_hit(np.full((1, 3), 30.0), np.array([[1.0, 0, 0]]))
+    assert np.isinf(away[0])
+    assert q.first_hit_face(np.full((1, 3), 30.0), np.array([[1.0, 0, 0]]))[0] == -1
+    assert q.distance(np.zeros((0, 3))).shape == (0,)
+
+
+def test_mesh_arrays_refuse_bad_meshes() -> None:
+    from chisel.core.errors import InvalidInputError
+    from chisel.core.raycast import mesh_arrays
+
+    v = np.zeros((3, 3))
+    with pytest.raises(InvalidInputError, match="m.ply: face index 3 out of range for 3"):
+        mesh_arrays(v, np.array([[0, 1, 3]]), "m.ply")
+    with pytest.raises(InvalidInputError, match="face index -1 out of range"):
+        mesh_arrays(v, np.array([[0, 1, -1]]))
+    with pytest.raises(InvalidInputError, match="NaN/inf"):
+        mesh_arrays(np.full((3, 3), np.nan), np.array([[0, 1, 2]]))
+    with pytest.raises(InvalidInputError, match=r"\(F>0, 3\) faces"):
+        mesh_arrays(v, np.zeros((0, 3), int))

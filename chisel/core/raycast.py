@@ -86,6 +86,112 @@ def _resolve_backend(backend: Backend) -> tuple[str, ModuleType | None]:
     return "open3d", None
 
 
+def mesh_arrays(
+    vertices_mm: np.ndarray, faces: np.ndarray, source: str = "mesh"
+) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle mesh's arrays checked once for every ray caster: (V, 3) float32 finite
+    vertices in mm and (F > 0, 3) uint32 faces that index them."""
+    v = np.ascontiguousarray(vertices_mm, dtype=np.float32)
+    f_in = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or f_in.ndim != 2 or f_in.shape[1] != 3 or len(f_in) == 0:
+        raise InvalidInputError(
+            source, f"expected (V, 3) vertices and (F>0, 3) faces, got {v.shape}, {f_in.shape}"
+        )
+    if not np.all(np.isfinite(v)):
+        raise InvalidInputError(source, "vertices contain NaN/inf")
+    if f_in.min() < 0 or f_in.max() >= len(v):
+        raise InvalidInputError(
+            source,
+            f"face index {int(f_in.min()) if f_in.min() < 0 else int(f_in.max())} out of "
+            f"range for {len(v)} vertices",
+        )
+    return v, np.ascontiguousarray(f_in, dtype=np.uint32)
+
+
+def _tensor(a: np.ndarray) -> object:
+    import open3d as o3d  # noqa: PLC0415 - ~1 s import, only where Open3D is used
+
+    return o3d.core.Tensor.from_numpy(np.ascontiguousarray(a))
+
+
+class SurfaceQueries:
+    """Open3D ``RaycastingScene`` queries against one triangle mesh in world mm: the one
+    wrapper that the evaluation, the simulator's clearance checks, the phantoms' CT
+    volumes and the CT-initialised model share.
+
+    vertices_mm : (V, 3) float, mm.  faces : (F, 3) int.  Signs and insideness assume a
+    closed mesh (positive distances outside the solid).
+    """
+
+    def __init__(self, vertices_mm: np.ndarray, faces: np.ndarray, source: str = "mesh") -> None:
+        import open3d as o3d  # noqa: PLC0415 - ~1 s import
+
+        v, f = mesh_arrays(vertices_mm, faces, source)
+        self.source = source
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(_tensor(v), _tensor(f))
+
+    @classmethod
+    def from_trimesh(cls, mesh, source: str | None = None) -> SurfaceQueries:  # noqa: ANN001
+        where = source or str(mesh.metadata.get("file_path", "mesh"))
+        return cls(mesh.vertices, mesh.faces, where)
+
+    @staticmethod
+    def _points(points_mm: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
+        p = np.asarray(points_mm, dtype=np.float32)
+        return np.ascontiguousarray(p.reshape(-1, 3)), p.shape[:-1]
+
+    def distance(self, points_mm: np.ndarray) -> np.ndarray:
+        """(..., 3) points -> (...,) float32 unsigned distance to the triangles, mm."""
+        p, shape = self._points(points_mm)
+        if len(p) == 0:
+            return np.zeros(shape, np.float32)
+        return self.scene.compute_distance(_tensor(p)).numpy().reshape(shape)
+
+    def signed_distance(self, points_mm: np.ndarray, nsamples: int = 3) -> np.ndarray:
+        """(..., 3) points -> (...,) float32 mm, > 0 outside the solid, < 0 inside;
+        insideness by a majority over ``nsamples`` ray parities (robust to grazing rays)."""
+        p, shape = self._points(points_mm)
+        if len(p) == 0:
+            return np.zeros(shape, np.float32)
+        d = self.scene.compute_signed_distance(_tensor(p), nsamples=nsamples)
+        return d.numpy().reshape(shape)
+
+    def inside(self, points_mm: np.ndarray, nsamples: int = 3) -> np.ndarray:
+        """(..., 3) points -> (...,) bool, True inside the solid (majority of ray parities)."""
+        p, shape = self._points(points_mm)
+        if len(p) == 0:
+            return np.zeros(shape, bool)
+        occ = self.scene.compute_occupancy(_tensor(p), nsamples=nsamples).numpy()
+        return occ.reshape(shape).astype(bool)
+
+    def closest_points(self, points_mm: np.ndarray) -> np.ndarray:
+        """(..., 3) points -> (..., 3) float32 nearest points on the triangles, mm."""
+        p, shape = self._points(points_mm)
+        res = self.scene.compute_closest_points(_tensor(p))
+        return res["points"].numpy().reshape(*shape, 3)
+
+    def first_hit(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Distance along each unit direction to the first hit, mm; inf on a miss.
+
+        origins_mm, directions : (N, 3) float. Returns (N,) float32.
+        """
+        rays = np.concatenate(
+            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
+        )
+        return self.scene.cast_rays(_tensor(rays.astype(np.float32)))["t_hit"].numpy()
+
+    def first_hit_face(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Index of the first triangle hit along each ray, -1 on a miss: (N,) int64."""
+        rays = np.concatenate(
+            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
+        )
+        hit = self.scene.cast_rays(_tensor(rays.astype(np.float32)))
+        ids = hit["primitive_ids"].numpy().astype(np.int64)
+        ids[~np.isfinite(hit["t_hit"].numpy())] = -1
+        return ids
+
+
 class MeshRaycaster:
     """Ray caster over one triangle mesh in world mm.
 
@@ -97,18 +203,7 @@ class MeshRaycaster:
     def __init__(
         self, vertices_mm: np.ndarray, faces: np.ndarray, backend: Backend = "auto"
     ) -> None:
-        v = np.asarray(vertices_mm, dtype=np.float32)
-        f = np.asarray(faces, dtype=np.uint32)
-        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-            raise InvalidInputError(
-                "mesh", f"expected (V, 3) vertices and (F>0, 3) faces, got {v.shape}, {f.shape}"
-            )
-        if not np.all(np.isfinite(v)):
-            raise InvalidInputError("mesh", "vertices contain NaN/inf")
-        if f.max() >= len(v):
-            raise InvalidInputError(
-                "mesh", f"face index {int(f.max())} out of range for {len(v)} vertices"
-            )
+        v, f = mesh_arrays(vertices_mm, faces)
         self.backend, self._mi = _resolve_backend(backend)
         if self._mi is not None:
             mi = self._mi
@@ -119,10 +214,7 @@ class MeshRaycaster:
             params.update()
             self.scene = mi.load_dict({"type": "scene", "surface": mesh})
         else:
-            import open3d as o3d  # noqa: PLC0415 - only the fallback needs it (~1 s import)
-
-            self.scene = o3d.t.geometry.RaycastingScene()
-            self.scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
+            self.scene = SurfaceQueries(v, f).scene
         self._rays_key: Camera | None = None
         self._rays_cam = np.zeros((0, 3), dtype=np.float32)
         self._dirs_jit: object = None
@@ -160,9 +252,7 @@ class MeshRaycaster:
         for i, T in enumerate(poses):
             rays[i, :, :3] = T[:3, 3]
             rays[i, :, 3:] = dirs @ T[:3, :3].T.astype(np.float32)
-        import open3d as o3d  # noqa: PLC0415 - loaded by __init__ already
-
-        t = self.scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)))["t_hit"].numpy()
+        t = self.scene.cast_rays(_tensor(rays.reshape(-1, 6)))["t_hit"].numpy()
         t[~np.isfinite(t)] = np.nan
         return t.reshape(shape)
 

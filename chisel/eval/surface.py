@@ -6,11 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 import trimesh
 
 from chisel.core.errors import EmptyResultError, InvalidInputError
-from chisel.core.raycast import MeshRaycaster
+from chisel.core.raycast import SurfaceQueries
 from chisel.eval.metrics import RoiBox, _check_mesh
 
 FSCORE_THRESHOLD_MM = 1.0
@@ -121,9 +120,8 @@ def point_to_mesh_distance(points_mm: np.ndarray, mesh: trimesh.Trimesh) -> np.n
 
     points_mm : (P, 3) float, world mm. Returns (P,) float64 mm (Open3D, float32 inside).
     """
-    rc = MeshRaycaster.from_trimesh(_check_mesh(mesh, "mesh"), backend="open3d")
-    pts = o3d.core.Tensor(np.asarray(points_mm, dtype=np.float32).reshape(-1, 3))
-    return rc.scene.compute_distance(pts).numpy().astype(np.float64)
+    queries = SurfaceQueries.from_trimesh(_check_mesh(mesh, "mesh"))
+    return queries.distance(np.asarray(points_mm).reshape(-1, 3)).astype(np.float64)
 
 
 def distance_metrics(
