@@ -35,9 +35,19 @@ import numpy as np
 
 from chisel.core.atomic import atomic_path
 from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.io.limits import check_npz_members
 
 MODEL_FORMAT = "endoscopic-chisel/model"
 MODEL_VERSION = 1
+
+MIN_VOXEL_SIZE_MM = 1e-3
+"""Smallest voxel edge, mm (1 um; CT and endoscopic depth resolve ~0.1 mm)."""
+MAX_VOXEL_SIZE_MM = 1e3
+"""Largest voxel edge, mm."""
+MAX_TRUNC_MM = 1e4
+"""Largest truncation distance, mm."""
+MAX_PLACEMENT_MM = 1e6
+"""Farthest a grid corner may lie from the world origin, mm (1 km: any scanner frame)."""
 BUILDS: tuple[str, ...] = ("ct", "sweep")
 """The preoperative builds a model file can record (field ``build``)."""
 
@@ -85,10 +95,22 @@ class TsdfModel:
             )
         if not (self.voxel_size_mm > 0 and np.isfinite(self.voxel_size_mm)):
             raise InvalidInputError("voxel_size_mm", f"must be > 0, got {self.voxel_size_mm}")
+        # Bounds, not only signs: a 1e-300 mm voxel or a 1e300 mm placement meshed to
+        # collapsed or infinite vertices without an error.
+        if not MIN_VOXEL_SIZE_MM <= self.voxel_size_mm <= MAX_VOXEL_SIZE_MM:
+            raise InvalidInputError(
+                "voxel_size_mm",
+                f"must be within [{MIN_VOXEL_SIZE_MM}, {MAX_VOXEL_SIZE_MM}] mm, got "
+                f"{self.voxel_size_mm}",
+            )
         if not (self.trunc_mm >= self.voxel_size_mm and np.isfinite(self.trunc_mm)):
             raise InvalidInputError(
                 "trunc_mm",
                 f"must be >= voxel_size_mm ({self.voxel_size_mm}), got {self.trunc_mm}",
+            )
+        if self.trunc_mm > MAX_TRUNC_MM:
+            raise InvalidInputError(
+                "trunc_mm", f"must be at most {MAX_TRUNC_MM} mm, got {self.trunc_mm}"
             )
         expected = np.diag([self.voxel_size_mm] * 3 + [1.0])
         expected[:3, 3] = T[:3, 3] if T.shape == (4, 4) else 0.0
@@ -97,6 +119,13 @@ class TsdfModel:
                 "T_world_from_voxel",
                 "expected an axis-aligned (4, 4) transform scaled by voxel_size_mm "
                 f"({self.voxel_size_mm}), got {T.tolist()}",
+            )
+        far_mm = T[:3, 3] + (np.array(tsdf.shape) - 1) * self.voxel_size_mm
+        if max(np.abs(T[:3, 3]).max(), np.abs(far_mm).max()) > MAX_PLACEMENT_MM:
+            raise InvalidInputError(
+                "T_world_from_voxel",
+                f"the grid spans {T[:3, 3].tolist()} to {far_mm.tolist()} mm, beyond "
+                f"{MAX_PLACEMENT_MM:g} mm of the world origin: not a patient's CT frame",
             )
         object.__setattr__(self, "T_world_from_voxel", T)
         if self.color is not None:
@@ -219,6 +248,7 @@ class TsdfModel:
         path = Path(path)
         if not path.is_file():
             raise InvalidInputError(path, "model file is missing")
+        check_npz_members(path)  # declared array sizes, before anything is unpacked
         try:
             loaded = np.load(path, allow_pickle=False)
             if isinstance(loaded, np.lib.npyio.NpzFile):

@@ -352,3 +352,104 @@ def test_diverging_finetune_stops_with_an_error_and_keeps_the_checkpoint(
     err = capsys.readouterr().err
     assert rc == 1 and "training diverged at epoch 1" in err and "Traceback" not in err
     assert out.read_bytes() == b"an earlier fine-tuned checkpoint"
+
+
+# ------------------------------------------------------ item 6: bounds on model fields
+
+
+def _model_npz(path: Path, **fields: Any) -> Path:
+    base: dict[str, Any] = {
+        "format": np.array("endoscopic-chisel/model"),
+        "version": np.array(1),
+        "tsdf": np.zeros((4, 4, 4), np.float32),
+        "weight": np.zeros((4, 4, 4), np.float32),
+        "T_world_from_voxel": np.diag([0.5, 0.5, 0.5, 1.0]),
+        "voxel_size_mm": np.array(0.5),
+        "trunc_mm": np.array(2.0),
+        "step": np.array(0),
+    }
+    base.update(fields)
+    np.savez(path, **base)
+    return path
+
+
+def _placed(origin_mm: float, voxel_mm: float) -> np.ndarray:
+    T = np.diag([voxel_mm, voxel_mm, voxel_mm, 1.0])
+    T[:3, 3] = origin_mm
+    return T
+
+
+@pytest.mark.parametrize(
+    ("fields", "problem"),
+    [
+        ({"T_world_from_voxel": _placed(1e300, 0.5)}, "T_world_from_voxel: the grid spans"),
+        (
+            {
+                "T_world_from_voxel": _placed(0.0, 1e-300),
+                "voxel_size_mm": np.array(1e-300),
+                "trunc_mm": np.array(1e-300),
+            },
+            "voxel_size_mm: must be within [0.001, 1000.0] mm, got 1e-300",
+        ),
+        (
+            {
+                "T_world_from_voxel": _placed(0.0, 1e5),
+                "voxel_size_mm": np.array(1e5),
+                "trunc_mm": np.array(1e5),
+            },
+            "voxel_size_mm: must be within",
+        ),
+        ({"trunc_mm": np.array(1e200)}, "trunc_mm: must be at most 10000.0 mm"),
+    ],
+)
+def test_model_fields_out_of_bounds_are_refused(
+    tmp_path: Path, fields: dict[str, Any], problem: str
+) -> None:
+    from chisel.model import TsdfModel
+
+    path = _model_npz(tmp_path / "m.npz", **fields)
+    with pytest.raises(InvalidInputError) as info:
+        TsdfModel.load(path)
+    assert info.value.source == str(path) and problem in info.value.problem
+
+
+def _npy_header_only(shape: tuple[int, ...]) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf, {"descr": "<f4", "fortran_order": False, "shape": shape}
+    )
+    return buf.getvalue()
+
+
+def test_arrays_declared_past_the_limits_are_refused_before_allocation(tmp_path: Path) -> None:
+    """A few bytes can declare a terabyte array: refused from the header, never allocated."""
+    import zipfile
+
+    from chisel.core.errors import ResourceLimitError
+    from chisel.io.importers import load_npy
+    from chisel.model import TsdfModel
+
+    bomb = tmp_path / "m.npz"
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("tsdf.npy", _npy_header_only((100000, 100000, 100000)))
+    with pytest.raises(ResourceLimitError, match=r"m\.npz member tsdf\.npy: array of shape"):
+        TsdfModel.load(bomb)
+    short = tmp_path / "d.npy"
+    short.write_bytes(_npy_header_only((4000, 4000)))  # declares 64 MB, holds none
+    with pytest.raises(InvalidInputError, match=r"d\.npy: array of shape .* file holds 0"):
+        load_npy(short)
+    # A PNG header declaring 100000 x 100000 pixels.
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", 100000, 100000, 8, 0, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    png = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + chunk
+    png += struct.pack(">I", zlib.crc32(chunk)) + b"\x00\x00\x00\x00IEND\xaeB`\x82"
+    (tmp_path / "huge.png").write_bytes(png)
+    from chisel.io.importers import read_rgb
+
+    with pytest.raises(ResourceLimitError, match=r"huge\.png: image declares 100000x100000"):
+        read_rgb(tmp_path / "huge.png")

@@ -75,12 +75,20 @@ def check_npy_header(fh: IO[bytes], source: str | Path, file_bytes: int | None) 
 
 
 def check_npz_members(path: str | Path) -> None:
-    """Check every member of an ``.npz`` archive: its declared array within the limits.
+    """Check every member of an ``.npz`` archive (or a bare ``.npy``): its declared array
+    within the limits.
 
     Refuses (naming the file and member) a zip that does not open, a member whose
     header is past :data:`MAX_ARRAY_BYTES`, and an archive whose total uncompressed size is.
     """
     path = Path(path)
+    with open(path, "rb") as fh:
+        if fh.read(6) == b"\x93NUMPY":  # a bare .npy: its one header
+            fh.seek(0)
+            check_npy_header(fh, path, path.stat().st_size)
+            return
+    if not zipfile.is_zipfile(path):
+        return  # not an archive at all: np.load says so
     try:
         with zipfile.ZipFile(path) as zf:
             total = sum(info.file_size for info in zf.infolist())
