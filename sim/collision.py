@@ -7,8 +7,9 @@ the solid, where the camera lives) and negative inside tissue.
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 import trimesh
+
+from chisel.core.raycast import SurfaceQueries
 
 
 class TissueDistance:
@@ -23,26 +24,15 @@ class TissueDistance:
         # sim.phantom.load_mesh records the file, so that path errors can name it.
         self.source = str(mesh.metadata.get("file_path", "the tissue mesh"))
         """The mesh file (or a description), for error messages."""
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(
-            o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
-            o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)),
-        )
+        self.queries = SurfaceQueries(mesh.vertices, mesh.faces, self.source)
 
     def signed_distance(self, points_mm: np.ndarray) -> np.ndarray:
         """points_mm : (..., 3) world mm. Returns (...,) float64 mm, > 0 in air, < 0 in tissue."""
-        p = np.asarray(points_mm, dtype=np.float32)
-        shape = p.shape[:-1]
-        # nsamples=3: inside/outside by majority vote over three ray parities (robust to
-        # rays grazing an edge).
-        d = self.scene.compute_signed_distance(o3d.core.Tensor(p.reshape(-1, 3)), nsamples=3)
-        return d.numpy().astype(np.float64).reshape(shape)
+        return self.queries.signed_distance(points_mm).astype(np.float64)
 
     def closest_points(self, points_mm: np.ndarray) -> np.ndarray:
         """points_mm : (..., 3) world mm. Returns (..., 3) float64, nearest surface points."""
-        p = np.asarray(points_mm, dtype=np.float32)
-        res = self.scene.compute_closest_points(o3d.core.Tensor(p.reshape(-1, 3)))
-        return res["points"].numpy().astype(np.float64).reshape(p.shape)
+        return self.queries.closest_points(points_mm).astype(np.float64)
 
     def first_hit_mm(self, origins_mm: np.ndarray, targets_mm: np.ndarray) -> np.ndarray:
         """Distance from each origin towards its target to the first tissue hit, mm (inf = none).
@@ -52,8 +42,7 @@ class TissueDistance:
         o = np.asarray(origins_mm, dtype=np.float64).reshape(-1, 3)
         d = np.asarray(targets_mm, dtype=np.float64).reshape(-1, 3) - o
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        rays = np.concatenate([o, d], axis=1).astype(np.float32)
-        return self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        return self.queries.first_hit(o, d).astype(np.float64)
 
     def push_to_clearance(
         self, points_mm: np.ndarray, clearance_mm: float, iterations: int = 8
