@@ -164,7 +164,7 @@ def check_fields(obj: Any, section: str = "", error: type[ConfigError] = ConfigE
 
     Call it first in ``__post_init__``; the error names the dotted key (``section.field``).
     """
-    hints = field_types(type(obj))
+    hints = field_types(type(obj))  # type: ignore[arg-type]  # classes are hashable
     for f in fields(obj):
         key = f"{section}.{f.name}" if section else f.name
         value = getattr(obj, f.name)

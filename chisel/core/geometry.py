@@ -216,6 +216,8 @@ class Camera:
     @cached_property
     def _rays_cam(self) -> np.ndarray:
         u, v = self.pixel_grid()
+        x: np.ndarray
+        y: np.ndarray
         if not self.has_distortion:
             x = (u - self.cx) / self.fx
             y = (v - self.cy) / self.fy

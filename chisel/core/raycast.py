@@ -17,12 +17,15 @@ Two back ends give the same depth (float32 Embree both; tested: median differenc
 from __future__ import annotations
 
 from types import ModuleType
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, check_rigid
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 Backend = Literal["auto", "mitsuba", "open3d"]
 
@@ -34,7 +37,7 @@ def unit_rays(rays_cam: np.ndarray) -> np.ndarray:
     return (rays / np.linalg.norm(rays, axis=-1)[..., None]).astype(np.float32)
 
 
-def jit_z_depth(mi: ModuleType, scene: object, dirs_cam: object, poses: np.ndarray) -> object:
+def jit_z_depth(mi: ModuleType, scene: Any, dirs_cam: Any, poses: np.ndarray) -> Any:
     """Unevaluated drjit Float: z-depth in mm along unit camera rays, for every pose.
 
     mi : Mitsuba on a JIT variant. scene : a loaded Mitsuba scene. dirs_cam : drjit
@@ -108,7 +111,7 @@ def mesh_arrays(
     return v, np.ascontiguousarray(f_in, dtype=np.uint32)
 
 
-def _tensor(a: np.ndarray) -> object:
+def _tensor(a: np.ndarray) -> o3d.core.Tensor:
     import open3d as o3d  # noqa: PLC0415 - ~1 s import, only where Open3D is used
 
     return o3d.core.Tensor.from_numpy(np.ascontiguousarray(a))

@@ -59,7 +59,7 @@ _METHOD_CELL_SCHEMA = {
         "std_mm": {"type": "number", "minimum": 0},
     },
 }
-_STEP_SCHEMA = {
+_STEP_SCHEMA: dict[str, Any] = {
     "type": "object",
     "required": ["step", "label", "methods"],
     "properties": {
