@@ -64,8 +64,15 @@ class SequenceDepth:
     solves the scale, exactly as when the network is the depth source.
     """
 
-    def __init__(self, path: str | Path, expected_frames: int | None = None) -> None:
+    def __init__(
+        self, path: str | Path, expected_frames: int | None = None, of: Sequence | None = None
+    ) -> None:
+        """``of``: the sequence being updated; the depth's camera and poses must be its own
+        (depth of other frames, or through another camera, was accepted unseen)."""
         self.sequence = Sequence(path)
+        if of is not None:
+            expected_frames = len(of)
+            _check_same_frames(self.sequence, of)
         if not self.sequence.has_depth:
             raise InvalidInputError(path, "depth-source sequence has no depth maps")
         prediction = self.sequence.meta.get("depth_prediction") or {}
@@ -79,6 +86,28 @@ class SequenceDepth:
 
     def __call__(self, frame: Frame) -> np.ndarray:
         return self.sequence.depth_mm(frame.index)
+
+
+def _check_same_frames(depth: Sequence, of: Sequence) -> None:
+    """Raise unless ``depth`` was taken with ``of``'s camera at ``of``'s poses."""
+    a, b = depth.camera, of.camera
+    if (a.width, a.height) != (b.width, b.height) or not (
+        np.allclose(a.K, b.K, rtol=1e-6, atol=1e-6) and np.allclose(a.dist, b.dist, atol=1e-9)
+    ):
+        raise InvalidInputError(
+            depth.path / "sequence.json",
+            f"depth-source camera ({a.width}x{a.height}, fx {a.fx:g}) is not the camera of "
+            f"{of.path} ({b.width}x{b.height}, fx {b.fx:g}): depth of other frames",
+        )
+    if len(depth.poses) == len(of.poses):
+        moved = np.abs(depth.poses - of.poses).reshape(len(of.poses), -1).max(axis=1)
+        bad = np.flatnonzero(moved > 1e-4)
+        if bad.size:
+            raise InvalidInputError(
+                depth.path / "poses.txt",
+                f"{bad.size} pose(s) differ from {of.path / 'poses.txt'} (first: frame "
+                f"{int(bad[0])}, by {moved[bad[0]]:.3g}): depth of other frames",
+            )
 
 
 class CallableDepth:
@@ -130,7 +159,7 @@ def depth_source_from_spec(spec: str, sequence: Sequence | None = None) -> Depth
         return GroundTruthDepth()
     kind, sep, arg = spec.partition(":")
     if sep and arg and kind == "sequence":
-        return SequenceDepth(arg, None if sequence is None else len(sequence))
+        return SequenceDepth(arg, of=sequence)
     if sep and arg and kind == "network":
         return load_network_source(arg)
     raise InvalidInputError(

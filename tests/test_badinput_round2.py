@@ -453,3 +453,29 @@ def test_arrays_declared_past_the_limits_are_refused_before_allocation(tmp_path:
 
     with pytest.raises(ResourceLimitError, match=r"huge\.png: image declares 100000x100000"):
         read_rgb(tmp_path / "huge.png")
+
+
+# --------------------------------------- a depth source whose frames are not the sequence's
+
+
+def test_depth_source_of_other_frames_is_refused(tmp_path: Path) -> None:
+    from chisel.depth_source import depth_source_from_spec
+    from chisel.io.sequence import Sequence
+
+    seq = _small_sequence(tmp_path / "seq")
+    same = shutil.copytree(seq, tmp_path / "same")
+    depth_source_from_spec(f"sequence:{same}", Sequence(seq))  # its own frames: fine
+    other = shutil.copytree(seq, tmp_path / "other_poses")
+    poses = np.loadtxt(other / "poses.txt")
+    poses[1, 3] += 2.0  # frame 1 moved 2 mm
+    np.savetxt(other / "poses.txt", poses)
+    with pytest.raises(
+        InvalidInputError, match=r"other_poses/poses\.txt: 1 pose\(s\) differ .*frame 1, by 2"
+    ):
+        depth_source_from_spec(f"sequence:{other}", Sequence(seq))
+    cam = shutil.copytree(seq, tmp_path / "other_camera")
+    _edit_header(cam, **{"camera.K": (CAM.K * [[1.1], [1.1], [1.0]]).tolist()})
+    with pytest.raises(
+        InvalidInputError, match=r"other_camera/sequence\.json: depth-source camera"
+    ):
+        depth_source_from_spec(f"sequence:{cam}", Sequence(seq))
