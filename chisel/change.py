@@ -52,6 +52,11 @@ class ChangeConfig:
     visible_mm: float = 1.0
     """Another frame sees a pixel's old surface point when its own render of M_t reaches
     that point within this distance, mm."""
+    contradict_fraction: float = 0.5
+    """Multi-view check: another frame contradicts a change only when its estimate is deeper
+    than its render by at most this fraction of its threshold; between that and the
+    threshold (an oblique view of the cut's side face just behind the old surface) its
+    view is ambiguous and not counted (1.0 = the strict rule)."""
     noise_k: float = 3.0
     """Noise-adaptive threshold: per frame, max(threshold_mm, noise_k * sigma) with sigma
     the robust spread of M' - M_t (see :func:`frame_threshold`) (0 = off: fixed threshold)."""
@@ -282,7 +287,7 @@ def clean_mask(mask: np.ndarray, cfg: ChangeConfig) -> np.ndarray:
 
 @numba.njit(parallel=True, cache=True)
 def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist,
-                        threshold_mm, visible_mm, support, observed):  # fmt: skip
+                        threshold_mm, visible_mm, contradict, support, observed):  # fmt: skip
     N, H, W = masks.shape
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for i in numba.prange(N):
@@ -320,10 +325,14 @@ def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, c
                     dj = diffs[j, vv, uu]
                     if not (dj == dj):  # NaN: no estimate there (lost in projection)
                         continue
-                    n_obs += 1
-                    # ...and its own estimate also says the surface moved away.
+                    # ...and its own estimate also says the surface moved away (support), or
+                    # says it is still there (contradiction); in between it is ambiguous
+                    # (e.g. an oblique view of the cut's side face just behind) and not counted.
                     if dj > threshold_mm[j]:
                         n_sup += 1
+                        n_obs += 1
+                    elif dj <= contradict * threshold_mm[j]:
+                        n_obs += 1
                 support[i, v, u] = n_sup
                 observed[i, v, u] = n_obs
 
@@ -337,6 +346,7 @@ def multiview_support(
     used: np.ndarray,
     threshold_mm: float | np.ndarray,
     visible_mm: float,
+    contradict_fraction: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """How many other frames confirm each changed pixel: (support, observed), (N, H, W) int32.
 
@@ -350,7 +360,10 @@ def multiview_support(
     used frame j. Frame j *observes* the point when its own render reaches it there (within
     ``visible_mm``: not occluded, not beside a silhouette) and its estimate is valid; it
     *supports* the change when its estimate is deeper than its render by ``threshold_mm``
-    (a number, or (N,) per-frame thresholds).
+    (a number, or (N,) per-frame thresholds), and it contradicts it when the estimate is
+    deeper by at most ``contradict_fraction`` times that threshold; an observation in
+    between is ambiguous and counts in neither (``observed`` = supporters + contradictors;
+    1.0 = every observation counts).
     Counts are 0 at unchanged pixels.
     """
     m = np.ascontiguousarray(masks, dtype=np.bool_)
@@ -375,6 +388,6 @@ def multiview_support(
         np.ascontiguousarray(used, dtype=np.bool_), camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64),
         np.broadcast_to(np.asarray(threshold_mm, dtype=np.float64), (N,)).copy(),
-        float(visible_mm), support, observed,
+        float(visible_mm), float(contradict_fraction), support, observed,
     )  # fmt: skip
     return support, observed

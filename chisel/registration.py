@@ -73,6 +73,10 @@ class RegistrationConfig:
     applied: it explains the depth estimate's shape error, not the pose."""
     tracking_accuracy_deg: float = 3.0
     """The same for F's rotation, degrees."""
+    max_scale_change: float = 0.2
+    """The depth scale solved by ICP stays within a factor (1 +- this) of the scale anchored to
+    the render (robust median of ratios); a registration that leaves the range has collapsed
+    (flat walls let scale trade against distance: 0.33 or 1e-6 was seen) and fails."""
     seed: int = 0
     """Seed of Open3D's random generator (RANSAC sampling): same seed, same result."""
 
@@ -87,6 +91,10 @@ class RegistrationConfig:
             raise InvalidInputError(
                 "tracking_accuracy",
                 f"must be > 0, got {self.tracking_accuracy_mm} mm / {self.tracking_accuracy_deg} deg",
+            )
+        if not 0.0 < self.max_scale_change < 1.0:
+            raise InvalidInputError(
+                "max_scale_change", f"must be in (0, 1), got {self.max_scale_change}"
             )
         if self.tukey_k_mm <= 0 or self.fitness_dist_mm <= 0:
             raise InvalidInputError("tukey_k_mm", "kernel width and fitness distance must be > 0")
@@ -193,10 +201,18 @@ def check_result(
     method: str,
     center: np.ndarray,
     cfg: RegistrationConfig,
+    scale: float = 1.0,
 ) -> RegistrationResult:
-    """Package a registration, failing it on low fitness or an implausible correction."""
+    """Package a registration, failing it on low fitness, an implausible correction, or a
+    scale refinement outside ``1 +- cfg.max_scale_change`` (collapse)."""
     shift_mm, angle_deg = correction_size(T, center)
     extra = {"correction_mm": shift_mm, "correction_deg": angle_deg}
+    lo, hi = 1.0 / (1.0 + cfg.max_scale_change), 1.0 + cfg.max_scale_change
+    if not (lo <= scale <= hi):
+        return RegistrationResult(
+            T, fitness, rmse, method, False,
+            f"scale refinement {scale:.3g} outside [{lo:.3g}, {hi:.3g}] of the render's scale", extra,
+        )  # fmt: skip
     if fitness < cfg.min_fitness:
         return RegistrationResult(
             T, fitness, rmse, method, False,

@@ -55,7 +55,13 @@ from chisel.core.geometry import (
 from chisel.core.raycast import MeshRaycaster
 from chisel.ct_model import CtInput, check_ct_covers_views, ct_tsdf
 from chisel.depth_source import is_metric
-from chisel.fusion import check_pose_in_model, integrate
+from chisel.fusion import (
+    CARVE_DELETED,
+    CARVE_FUSE,
+    carve_first_layer,
+    check_pose_in_model,
+    integrate,
+)
 from chisel.io.sequence import Frame, check_depth_mm
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
@@ -135,6 +141,11 @@ class UpdateConfig:
     hand_eye_frames: int = 20
     """Batch mode: at most this many frames, evenly spaced, estimate the hand-eye
     correction F (a robust median: more frames add time, not accuracy)."""
+    carve: Literal["deletion", "paper"] = "deletion"
+    """How a change is carved: "deletion" = delete the first layer along a changed ray up to
+    the next surface the model holds, fuse the new depth only where it holds nothing
+    behind (:func:`chisel.fusion.carve_first_layer`); "paper" = fuse the new depth at every
+    changed pixel (the masked update alone)."""
     allow_unused_step: bool = False
     """When no frame of a step can be used (every registration failed): False = raise
     :class:`EmptyResultError`; True = keep the model as it was (the step counter still
@@ -144,6 +155,8 @@ class UpdateConfig:
     def __post_init__(self) -> None:
         if self.max_points < 100 or self.sequence_points < 100:
             raise InvalidInputError("max_points", "use at least 100 points per frame")
+        if self.carve not in ("deletion", "paper"):
+            raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")
         if self.hand_eye_frames < 1:
             raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")
 
@@ -302,6 +315,10 @@ class FrameReport:
     """Changed pixels dropped because other frames did not confirm them (batch)."""
     threshold_mm: float = float("nan")
     """The change threshold used for this frame, mm (see ``ChangeConfig.noise_k``)."""
+    deleted_px: int = 0
+    """Changed pixels whose first layer was deleted up to a surface the model holds."""
+    voxels_deleted: int = 0
+    """Voxels set free by deletion-first carving (included in ``voxels_updated``)."""
 
     def to_dict(self) -> dict:
         return {
@@ -314,6 +331,8 @@ class FrameReport:
             "voxels_updated": int(self.voxels_updated),
             "unconfirmed_px": int(self.unconfirmed_px),
             "threshold_mm": None if not np.isfinite(self.threshold_mm) else self.threshold_mm,
+            "deleted_px": int(self.deleted_px),
+            "voxels_deleted": int(self.voxels_deleted),
         }
 
 
@@ -341,6 +360,9 @@ class StepReport:
             "num_frames": len(self.frames),
             "frames_used": self.frames_used,
             "frames_skipped": self.frames_skipped,
+            "frames_unregistered": [
+                f.index for f in self.frames if f.used and "fallback" in (f.registration or {})
+            ],
             "changed_pixel_fraction_mean": float(np.mean([f.changed_fraction for f in used]))
             if used
             else 0.0,
@@ -503,10 +525,7 @@ class ChiselUpdater:
             return rep
         rep.scale = scale
         rep.registration = None if reg_res is None else reg_res.to_dict()
-        if reg_res is not None and not reg_res.ok:
-            rep.reason = f"registration failed: {reg_res.reason}"
-            return rep
-        if reg_res is not None and "rejected" not in reg_res.extra:
+        if reg_res is not None and reg_res.ok and "rejected" not in reg_res.extra:
             self._F_hist.append(invert_rigid(T) @ reg_res.T_model_from_est @ T)
         m_prime = impute(m_raw, R)
         rep.threshold_mm = frame_threshold(m_raw, R, self.cfg.change)
@@ -527,15 +546,26 @@ class ChiselUpdater:
             if rep.mask is None or rep.m_prime is None or rep.m_t is None:
                 raise InvalidInputError("rep", f"frame {rep.index}: maps already dropped")
             mask = rep.mask
+            fuse_mask = mask
+            if self.cfg.carve == "deletion" and mask.any():
+                # Deletion first: where the model already holds the surface behind the
+                # removed layer, delete the layer and keep that surface; fuse the new
+                # depth only where the model holds nothing behind.
+                status, rep.voxels_deleted = carve_first_layer(
+                    self.model, self.camera, rep.T_world_from_cam, rep.m_t, rep.m_prime,
+                    mask, rep.threshold_mm, reset=self._reset,
+                )  # fmt: skip
+                rep.deleted_px = int((status == CARVE_DELETED).sum())
+                fuse_mask = mask & (status == CARVE_FUSE)
             lateral = cv2.distanceTransform(
-                mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE
+                fuse_mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE
             )
-            rep.voxels_updated = integrate(
+            rep.voxels_updated = rep.voxels_deleted + integrate(
                 self.model,
                 self.camera,
                 rep.T_world_from_cam,
                 rep.m_prime,
-                pixel_weight=mask,
+                pixel_weight=fuse_mask,
                 rgb=rgb,
                 reset=self._reset,
                 lateral_px=lateral,
@@ -570,7 +600,7 @@ class ChiselUpdater:
         index = self.renderer.index
         sim = icp_similarity(src, center, index, C, rcfg, estimate_scale=scale_free, prior=prior)
         res = check_result(
-            sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg
+            sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg, sim.scale
         )
         if not res.ok:
             # Lost track (first frame, a jump): global RANSAC on this frame alone, then ICP.
@@ -589,11 +619,15 @@ class ChiselUpdater:
                         "ransac+icp",
                         src.mean(axis=0),
                         rcfg,
+                        sim.scale,
                     )
         s = s0 * sim.scale
         res.extra.update({"scale_refinement": sim.scale, "icp_iterations": sim.iterations})
         if not res.ok:
-            return np.full_like(E, np.nan), s, res
+            # A noisy estimate never fails the frame: it keeps its tracked pose and the
+            # scale anchored to the render (as the registration ablation), and says so.
+            res.extra["fallback"] = f"registration failed ({res.reason}): tracked pose, scale only"
+            return (s0 * E).astype(np.float32), s0, res
         # Registered estimate (camera at C @ T) re-projected into the tracked camera T.
         T_tracked_from_registered = invert_rigid(T) @ res.T_model_from_est @ T
         excess = _tracking_excess(T_tracked_from_registered, rcfg)
@@ -761,6 +795,7 @@ def confirm_changes(reps: list[FrameReport], camera: Camera, cfg: ChangeConfig) 
     support, observed = multiview_support(
         masks, stack("m_t", np.nan), stack("m_raw", np.nan), camera, poses, used,
         np.array([r.threshold_mm if r.used else np.inf for r in reps]), cfg.visible_mm,
+        cfg.contradict_fraction,
     )  # fmt: skip
     keep = (support >= cfg.min_views) & (support >= cfg.min_agreement * observed)
     for r, m, k in zip(reps, masks, keep, strict=True):
@@ -812,7 +847,7 @@ def _hand_eye(
             continue
         sim = icp_similarity(src, T[:3, 3], renderer.index, C_seq, rcfg, estimate_scale=scale_free)
         res = check_result(
-            sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg
+            sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg, sim.scale
         )
         fits.append(sim.fitness if res.ok else 0.0)
         if res.ok:

@@ -113,7 +113,10 @@ def test_one_frames_depth_error_is_not_carved(scene: dict) -> None:
         return d
 
     src = CallableDepth(depth, metric=True)
-    single, rep_single = update_step(model, cam, fr, src, UpdateConfig(change=SINGLE))
+    # The paper's detector and carving (every changed pixel fuses its depth).
+    single, rep_single = update_step(
+        model, cam, fr, src, UpdateConfig(change=SINGLE, carve="paper")
+    )
     multi, rep_multi = update_step(model, cam, fr, src, UpdateConfig())
     assert rep_single.frames[4].changed_fraction > rep_multi.frames[4].changed_fraction
     assert rep_multi.frames[4].unconfirmed_px >= blob.sum() * 0.8

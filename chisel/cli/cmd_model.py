@@ -324,7 +324,6 @@ def _read_ct_arrays(path: Path, kind: str = "auto"):  # noqa: ANN202 - CtVolume 
 
 def _read_ct(args: argparse.Namespace):  # noqa: ANN202 - chisel.ct_model.CtInput
     from chisel.ct_model import TISSUE_LABELS, ct_from_mesh, ct_from_volume
-
     from chisel.io.ct import CtVolume
 
     got = _read_ct_arrays(args.from_ct, args.kind)
@@ -341,7 +340,6 @@ def _read_ct(args: argparse.Namespace):  # noqa: ANN202 - chisel.ct_model.CtInpu
 def _ct_fingerprint(path: Path) -> str:
     """The content hash a whole-CT build records for this CT file (see chisel.ct_model)."""
     from chisel.ct_model import fingerprint_arrays
-
     from chisel.io.ct import CtVolume
 
     got = _read_ct_arrays(path)

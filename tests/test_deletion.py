@@ -1,0 +1,155 @@
+"""Deletion-first carving on a wall with a window, and a step that cannot collapse.
+
+Scene (world mm): a tissue block with two air chambers along z, A (z -12..10, the camera's)
+and B (z 12..20), separated by a 2 mm wall (z 10..12). Surgery cuts a 6 x 6 mm window
+through the wall (|x|, |y| <= 3). The preoperative model is the whole CT (closed mesh), so
+B's walls are in the model although no camera in A sees them. Walls are flat: the case
+where a scale-solving ICP without a prior collapsed (issue 19).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from chisel.core.geometry import Camera, look_at, transform_points
+from chisel.core.raycast import MeshRaycaster
+from chisel.ct_model import ct_from_mesh
+from chisel.depth_source import CallableDepth, GroundTruthDepth
+from chisel.io.sequence import Frame
+from chisel.model import TsdfModel
+from chisel.updater import BuildConfig, UpdateConfig, build_preop_model, update_step
+
+VOXEL_MM = 0.5
+WINDOW_MM = 3.0
+"""Half-width of the window, mm."""
+WALL_Z = (10.0, 12.0)
+
+
+def _box(lo, hi) -> trimesh.Trimesh:  # noqa: ANN001
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    b = trimesh.creation.box(extents=hi - lo)
+    b.apply_translation((hi + lo) / 2.0)
+    return b
+
+
+def _scene() -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
+    block = _box([-14.0, -14.0, -16.0], [14.0, 14.0, 24.0])
+    solid = block.difference(_box([-10, -10, -12], [10, 10, WALL_Z[0]]), engine="manifold")
+    solid = solid.difference(_box([-10, -10, WALL_Z[1]], [10, 10, 20]), engine="manifold")
+    window = _box([-WINDOW_MM, -WINDOW_MM, 9.0], [WINDOW_MM, WINDOW_MM, 13.0])
+    return solid, solid.difference(window, engine="manifold")
+
+
+CAM = Camera.from_fov(96, 80, 70.0)
+
+
+def _poses(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        eye = np.array([0.0, 0.0, -2.0]) + rng.uniform(-4.0, 4.0, 3) * [1, 1, 0.5]
+        target = np.array([0.0, 0.0, 11.0]) + rng.uniform(-3.0, 3.0, 3) * [1, 1, 0]
+        out.append(look_at(eye, target, np.array([0.0, -1.0, 0.0]) + rng.normal(0, 0.2, 3)))
+    return np.stack(out)
+
+
+def _hand_eye_error(shift_mm: float, angle_deg: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = np.radians(angle_deg)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    F = np.eye(4)
+    F[:3, :3] = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    t = rng.normal(size=3)
+    F[:3, 3] = t / np.linalg.norm(t) * shift_mm
+    return F
+
+
+def _frames(mesh: trimesh.Trimesh, true: np.ndarray, tracked: np.ndarray) -> list[Frame]:
+    rc = MeshRaycaster.from_trimesh(mesh)
+    return [
+        Frame(index=i, T_world_from_cam=tracked[i], depth_mm=rc.render_depth(CAM, true[i]))
+        for i in range(len(true))
+    ]
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    before, after = _scene()
+    preop = _poses(24, seed=1)
+    model = build_preop_model(None, CAM, preop, BuildConfig(VOXEL_MM, 2.0), ct=ct_from_mesh(before))
+    return {"before": before, "after": after, "model": model}
+
+
+def _points(model: TsdfModel) -> np.ndarray:
+    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in model.shape], indexing="ij"), axis=-1)
+    return transform_points(model.T_world_from_voxel, ijk.reshape(-1, 3).astype(float)).reshape(
+        *model.shape, 3
+    )
+
+
+def _check_window(model: TsdfModel, new: TsdfModel, tol_mm: float) -> None:
+    P = _points(model)
+    r = np.max(np.abs(P[..., :2]), axis=-1)  # square "radius" about the window's axis
+    z = P[..., 2]
+    core = (z > WALL_Z[0] + 0.3) & (z < WALL_Z[1] - 0.3) & (r < 9.5)  # inside the wall
+    assert np.all(model.tsdf[core & (r < 9.0)] < 0)  # the preop model holds the wall
+    opened = core & (new.tsdf > 0)
+    # The window opens to its true size within tol_mm: all of it inside, nothing beyond.
+    assert np.all(new.tsdf[core & (r < WINDOW_MM - tol_mm)] > 0), "window not fully open"
+    assert r[opened].max() <= WINDOW_MM + tol_mm, f"opened to {r[opened].max():.2f} mm"
+    # The far chamber's walls are untouched: B's back wall (z = 20) and side walls.
+    far = ((z > WALL_Z[1] + 2.5) | (r > 9.0)) & ~core
+    changed = far & (new.tsdf != model.tsdf)
+    assert not changed.any(), f"{int(changed.sum())} voxels changed away from the window"
+
+
+def test_deletion_opens_the_window_and_stops_at_the_next_surface(scene: dict) -> None:
+    true = _poses(30, seed=2)
+    fr = _frames(scene["after"], true, true)
+    new, rep = update_step(scene["model"], CAM, fr, GroundTruthDepth())
+    d = rep.to_dict()
+    assert sum(f["deleted_px"] for f in d["frames"]) > 0
+    _check_window(scene["model"], new, VOXEL_MM)
+
+
+def test_paper_carving_writes_the_estimate_instead(scene: dict) -> None:
+    # The paper's masked update (no deletion) fuses the estimate's depth at every changed
+    # pixel; with exact depth it also opens the window, and it never deletes.
+    true = _poses(30, seed=2)
+    fr = _frames(scene["after"], true, true)
+    new, rep = update_step(scene["model"], CAM, fr, GroundTruthDepth(), UpdateConfig(carve="paper"))
+    assert all(f["deleted_px"] == 0 for f in rep.to_dict()["frames"])
+    P = _points(new)
+    r = np.max(np.abs(P[..., :2]), axis=-1)
+    mid = (np.abs(P[..., 2] - 11.0) < 0.3) & (r <= WINDOW_MM - VOXEL_MM)
+    assert np.all(new.tsdf[mid] > 0)
+
+
+def test_noisy_relative_depth_with_hand_eye_error_registers_or_falls_back(scene: dict) -> None:
+    # Relative depth (unknown scale, 5 % per-frame scale error), 0.5 mm noise, and a
+    # 1 mm / 1 deg hand-eye error on the tracked poses: the step must not fail, and the
+    # window is carved to within two voxels.
+    true = _poses(30, seed=3)
+    F = _hand_eye_error(1.0, 1.0, seed=4)
+    tracked = np.stack([T @ np.linalg.inv(F) for T in true])
+    fr = _frames(scene["after"], true, tracked)
+    rng = np.random.default_rng(5)
+    scale_err = 1.0 + rng.uniform(-0.05, 0.05, len(fr))
+    noise = {f.index: rng.normal(0.0, 0.5, f.depth_mm.shape) for f in fr}
+
+    def relative(f: Frame) -> np.ndarray:
+        return (0.037 * scale_err[f.index] * (f.depth_mm + noise[f.index])).astype(np.float32)
+
+    new, rep = update_step(scene["model"], CAM, fr, CallableDepth(relative))
+    d = rep.to_dict()
+    assert len(d["frames_used"]) == len(fr)  # a frame that does not register falls back
+    for f in d["frames"]:
+        reg = f["registration"] or {}
+        assert reg.get("ok", True) or "fallback" in reg, f
+        # The scale is anchored to the render: never collapses.
+        assert 0.037 * 0.8 < 1.0 / f["scale"] < 0.037 * 1.25
+    _check_window(scene["model"], new, 2 * VOXEL_MM)
