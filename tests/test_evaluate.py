@@ -753,3 +753,61 @@ def test_cli_evaluate_table_sweep_seeds(tmp_path: Path) -> None:
         == 1
     )
     assert (tmp_path / "s1.json").read_bytes() == before
+
+
+# --------------------------------------------------------------------------------------
+# Volumetric scores of the removal (chisel.eval.volume)
+
+
+def _box_mask(shape: tuple[int, int, int], lo: tuple[int, ...], hi: tuple[int, ...]) -> np.ndarray:
+    m = np.zeros(shape, bool)
+    m[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] = True
+    return m
+
+
+def test_removal_dice_matches_box_overlap_and_hd95_a_kdtree() -> None:
+    from scipy.spatial import cKDTree
+
+    from chisel.eval.volume import _boundary, dice, hd95_mm, removal_scores
+
+    shape = (40, 40, 40)
+    a = _box_mask(shape, (5, 5, 5), (25, 25, 25))  # 20^3 voxels
+    b = _box_mask(shape, (9, 5, 5), (29, 25, 25))  # shifted by 4 voxels along x
+    # Overlap 16 x 20 x 20: Dice = 2 * 6400 / 16000.
+    assert dice(a, b) == pytest.approx(2 * 16 * 400 / (2 * 8000))
+    assert dice(a, a) == 1.0 and dice(np.zeros(shape, bool), np.zeros(shape, bool)) is None
+    # HD95 against a k-d tree over the boundary voxels' centres (0.5 mm voxels).
+    pa, pb = np.argwhere(_boundary(a)) * 0.5, np.argwhere(_boundary(b)) * 0.5
+    d = np.concatenate([cKDTree(pb).query(pa)[0], cKDTree(pa).query(pb)[0]])
+    assert hd95_mm(a, b, 0.5) == pytest.approx(np.percentile(d, 95))
+    assert hd95_mm(a, a, 0.5) == 0.0 and hd95_mm(a, np.zeros(shape, bool), 0.5) is None
+    s = removal_scores(a, b, 0.5)
+    assert s.model_mm3 == pytest.approx(8000 * 0.125) and s.truth_mm3 == s.model_mm3
+
+
+def test_model_and_true_removal_on_the_model_grid() -> None:
+    from chisel.eval.volume import model_removal, removal_scores, true_removal
+    from chisel.model import TsdfModel
+
+    # CT: 1 mm voxels, tissue (label 1) everywhere, a 4 mm cube removed at the step.
+    pre = np.ones((20, 20, 20), np.uint8)
+    now = pre.copy()
+    now[8:12, 8:12, 8:12] = 0
+    T_ct = np.eye(4)
+    # Model: 0.5 mm voxels over the same box; the "updated" model frees the same cube.
+    m0 = TsdfModel.empty(np.zeros(3), np.full(3, 19.0), 0.5, 2.0)
+    m0.tsdf[:] = -1.0
+    m0.weight[:] = 1.0
+    m1 = m0.copy()
+    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in m0.shape], indexing="ij"), -1) * 0.5
+    cube = np.all((ijk >= 7.5) & (ijk < 11.5), axis=-1)  # nearest CT voxels 8..11
+    m1.tsdf[cube] = 1.0
+    truth = true_removal(pre, now, T_ct, m0)
+    got = model_removal(m0, m1)
+    np.testing.assert_array_equal(truth, cube)
+    s = removal_scores(got, truth, 0.5)
+    assert s.dice == 1.0 and s.hd95_mm == 0.0
+    assert s.truth_mm3 == pytest.approx(cube.sum() * 0.125)
+    # No update: nothing removed, Dice 0, HD95 undefined.
+    s0 = removal_scores(model_removal(m0, m0), truth, 0.5)
+    assert s0.dice == 0.0 and s0.hd95_mm is None

@@ -43,6 +43,7 @@ from chisel.eval.tables import (
     STEP_METRICS_FORMAT,
     step_label,
 )
+from chisel.eval.volume import RemovalScores, model_removal, removal_scores, true_removal
 from chisel.io.images import decode_image
 from chisel.io.sequence import Sequence as SequenceFolder
 
@@ -57,7 +58,10 @@ def _finite_or_none(x: float | None) -> float | None:
 
 
 def method_cell(
-    corr: CorrespondenceError, surf: SurfaceMetrics, masks: MaskScores | None
+    corr: CorrespondenceError,
+    surf: SurfaceMetrics,
+    masks: MaskScores | None,
+    removal: RemovalScores | None = None,
 ) -> dict[str, float | int | None]:
     """One method's cell of ``metrics.json`` (every key of :data:`METRIC_KEYS`)."""
     if surf.threshold_mm != FSCORE_THRESHOLD_MM:
@@ -83,6 +87,8 @@ def method_cell(
         "fscore_1mm": surf.fscore,
         "mask_precision": None if masks is None else _finite_or_none(masks.precision),
         "mask_recall": None if masks is None else _finite_or_none(masks.recall),
+        "removed_dice": None if removal is None else removal.dice,
+        "removed_hd95_mm": None if removal is None else removal.hd95_mm,
     }
 
 
@@ -108,11 +114,13 @@ def evaluate_methods(
     cfg: SurfaceMetricConfig = SurfaceMetricConfig(),  # noqa: B008 - frozen, immutable
     change_masks: Mapping[str, ChangeMaskInput] | None = None,
     pixel_mask: np.ndarray | None = None,
+    removals: Mapping[str, RemovalScores] | None = None,
 ) -> dict[str, Any]:
     """Evaluate every method's mesh against the step's GT mesh; returns a step dict.
 
     poses : (N, 4, 4) float64 evaluation ``T_world_from_cam`` viewing the box.
     pixel_mask : (H, W) bool or None; False pixels never count in the correspondence error.
+    removals : name -> removed-tissue scores (:mod:`chisel.eval.volume`), or None.
     Returns ``{"step", "label", "methods": {name: cell}}`` (cells as in ``metrics.json``).
     """
     if not method_meshes:
@@ -145,7 +153,7 @@ def evaluate_methods(
         if change_masks and name in change_masks:
             cm = change_masks[name]
             masks = mask_precision_recall(cm.pred_masks, cm.true_masks, cm.valid)
-        methods[name] = method_cell(corr, surf, masks)
+        methods[name] = method_cell(corr, surf, masks, (removals or {}).get(name))
         log.info(
             "step %d %s: %.3f +- %.3f mm (n=%d), chamfer %.3f mm",
             step,
@@ -257,6 +265,32 @@ def _eval_poses(seq: SequenceFolder) -> tuple[np.ndarray, str]:
     return seq.poses, "poses.txt"
 
 
+def _removals(
+    model_paths: Mapping[str, str | Path],
+    preop_model_path: str | Path | None,
+    ct_label_paths: tuple[str | Path, str | Path] | None,
+) -> dict[str, RemovalScores]:
+    """Removed-tissue scores per method from files (see :mod:`chisel.eval.volume`)."""
+    from chisel.io.ct import read_ct_volume
+    from chisel.model import TsdfModel
+
+    if preop_model_path is None or ct_label_paths is None:
+        raise InvalidInputError(
+            "removal_model_paths", "volumetric scores need preop_model_path and ct_label_paths"
+        )
+    pre_ct = read_ct_volume(ct_label_paths[0], "label")
+    now_ct = read_ct_volume(ct_label_paths[1], "label")
+    if not np.allclose(pre_ct.T_world_from_voxel, now_ct.T_world_from_voxel):
+        raise InvalidInputError(ct_label_paths[1], "not on the preop label CT's grid")
+    preop = TsdfModel.load(preop_model_path)
+    truth = true_removal(pre_ct.data, now_ct.data, pre_ct.T_world_from_voxel, preop)
+    out = {}
+    for name, path in model_paths.items():
+        removed = model_removal(preop, TsdfModel.load(path))
+        out[name] = removal_scores(removed, truth, preop.voxel_size_mm)
+    return out
+
+
 def evaluate_step(
     gt_mesh_path: str | Path,
     method_mesh_paths: Mapping[str, str | Path],
@@ -267,6 +301,9 @@ def evaluate_step(
     change_mask_paths: Mapping[str, str | Path] | None = None,
     change_sequence_path: str | Path | None = None,
     prev_gt_mesh_path: str | Path | None = None,
+    removal_model_paths: Mapping[str, str | Path] | None = None,
+    preop_model_path: str | Path | None = None,
+    ct_label_paths: tuple[str | Path, str | Path] | None = None,
 ) -> dict[str, Any]:
     """Evaluate one step from files; returns the step-metrics dict (see ``STEP_METRICS_SCHEMA``).
 
@@ -277,6 +314,9 @@ def evaluate_step(
     change_mask_paths : name -> predicted change masks (see :func:`load_change_masks`) of the
     step's update sequence ``change_sequence_path``; scored against the true change between
     ``prev_gt_mesh_path`` (step t-1) and ``gt_mesh_path`` at that sequence's poses.
+    removal_model_paths : name -> the method's model file (.npz) at this step; with
+    ``preop_model_path`` and ``ct_label_paths`` (preop label CT, this step's label CT) the
+    removed-tissue Dice and HD95 are scored (:mod:`chisel.eval.volume`).
     """
     box = roi_box_mm if isinstance(roi_box_mm, RoiBox) else RoiBox.from_values(roi_box_mm)
     if not method_mesh_paths:
@@ -307,9 +347,13 @@ def evaluate_step(
             pred = load_change_masks(p, len(cseq), cseq.camera.shape)
             change_inputs[name] = ChangeMaskInput(pred, truth, cseq.camera_mask)
 
+    removals = None
+    if removal_model_paths:
+        removals = _removals(removal_model_paths, preop_model_path, ct_label_paths)
     result = evaluate_methods(
-        gt_mesh, meshes, seq.camera, poses, box, step, cfg, change_inputs, seq.camera_mask
-    )
+        gt_mesh, meshes, seq.camera, poses, box, step, cfg, change_inputs, seq.camera_mask,
+        removals,
+    )  # fmt: skip
     return {
         "format": STEP_METRICS_FORMAT,
         "version": METRICS_VERSION,

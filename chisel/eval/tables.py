@@ -44,13 +44,17 @@ METRIC_KEYS: tuple[str, ...] = (
     "fscore_1mm",
     "mask_precision",
     "mask_recall",
+    "removed_dice",
+    "removed_hd95_mm",
 )
 """Every key of a method's cell in ``metrics.json``; a value is a number or null."""
+OPTIONAL_KEYS: tuple[str, ...] = ("removed_dice", "removed_hd95_mm")
+"""Keys a cell may lack (tables written before the volumetric scores existed): read as null."""
 
 _NUM_OR_NULL = {"type": ["number", "null"]}
 _METHOD_CELL_SCHEMA = {
     "type": "object",
-    "required": list(METRIC_KEYS),
+    "required": [k for k in METRIC_KEYS if k not in OPTIONAL_KEYS],
     "properties": {
         **{k: _NUM_OR_NULL for k in METRIC_KEYS},
         "n_points": {"type": "integer", "minimum": 1},
@@ -237,7 +241,7 @@ def metrics_to_csv(metrics: Mapping[str, Any]) -> str:
                     s["step"],
                     s["label"],
                     m,
-                    *("" if cell[k] is None else repr(cell[k]) for k in METRIC_KEYS),
+                    *("" if cell.get(k) is None else repr(cell[k]) for k in METRIC_KEYS),
                 ]
             )
     return buf.getvalue()
@@ -270,6 +274,8 @@ def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
         "missing_fraction",
         "mask_precision",
         "mask_recall",
+        "removed_dice",
+        "removed_hd95_mm",
     )
     lines += [
         "",
@@ -282,7 +288,7 @@ def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
         for m in _method_order(list(s["methods"])):
             c = s["methods"][m]
             lines.append(
-                f"| {s['label']} | {m} | " + " | ".join(_fmt(c[k]) for k in surf_keys) + " |"
+                f"| {s['label']} | {m} | " + " | ".join(_fmt(c.get(k)) for k in surf_keys) + " |"
             )
     return "\n".join(lines) + "\n"
 
@@ -328,7 +334,7 @@ def aggregate_seeds(
             for m, cell in s["methods"].items():
                 per_key = per_method.setdefault(m, {k: [] for k in METRIC_KEYS})
                 for k in METRIC_KEYS:
-                    if cell[k] is not None:
+                    if cell.get(k) is not None:
                         per_key[k].append(float(cell[k]))
     steps = []
     for s in sorted(values):
