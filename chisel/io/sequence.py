@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import errno
 import json
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,7 +139,9 @@ def read_poses_txt(path: Path) -> np.ndarray:
         raise PoseError(path, "file is missing")
     text = read_text_limited(path, "pose file", PoseError)
     try:
-        arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # an empty file is refused below, by name
+            warnings.simplefilter("ignore", UserWarning)
+            arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2)
     except ValueError as exc:
         raise PoseError(path, f"cannot parse pose file: {exc}") from None
     if arr.size == 0:
