@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from chisel.core.errors import InvalidInputError
+from chisel.core.errors import InvalidInputError, ResourceLimitError
 from chisel.io.limits import check_image_size
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -41,6 +41,8 @@ def read_image_bytes(path: str | Path, what: str = "image") -> bytes:
         data = path.read_bytes()
     except OSError as exc:
         raise InvalidInputError(path, f"cannot read {what}: {exc.strerror or exc}") from None
+    except MemoryError:
+        raise ResourceLimitError(path, f"out of memory reading this {what}") from None
     check_complete(path, data)
     return data
 

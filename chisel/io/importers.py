@@ -42,7 +42,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from chisel.core.atomic import atomic_dir
-from chisel.core.errors import CameraError, ChiselError, InvalidInputError, OutputError, PoseError
+from chisel.core.errors import (
+    CameraError,
+    ChiselError,
+    InvalidInputError,
+    OutputError,
+    PoseError,
+    ResourceLimitError,
+)
 from chisel.core.geometry import Camera, check_rigid
 from chisel.io.calibration import Calibration, read_calibration
 from chisel.io.images import decode_image
@@ -242,6 +249,8 @@ def load_npy(path: str | Path) -> np.ndarray:
         raise InvalidInputError(path, f"cannot read .npy: {exc}") from None
     except (OSError, EOFError) as exc:
         raise InvalidInputError(path, f"cannot read .npy (truncated?): {exc}") from None
+    except MemoryError:
+        raise ResourceLimitError(path, "out of memory reading this .npy") from None
 
 
 def _natural_key(path: Path) -> list:
