@@ -40,6 +40,7 @@ METHOD_SPECS = {
     "depth_ablation": ("gt", True),
     "registration_ablation": ("network", False),
     "exact_noreg": ("gt", False),
+    "updated_sweep": ("network", True),  # the paper's build: preop model from the sweep alone
 }
 
 # Methods run per variant: "base" is the paper's table; the rest are the sweeps.
@@ -102,7 +103,8 @@ def update_sequence(wc):
 def previous_model(wc):
     step = int(wc.step)
     if step == 1:
-        return f"{RESULTS}/seed_{wc.seed}/preop/model.npz"
+        build = "model_sweep" if wc.method == "updated_sweep" else "model"
+        return f"{RESULTS}/seed_{wc.seed}/preop/{build}.npz"
     return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{wc.method}/step_{step - 1:02d}/model.npz"
 
 

@@ -3,6 +3,8 @@ rule evaluate_step:
         manifest=rules.phantom.output.manifest,
         index=rules.render.output.index,
         meshes=lambda wc: [method_mesh(wc, m) for m in eval_methods(wc)],
+        models=lambda wc: [method_mesh(wc, m).replace("mesh.ply", "model.npz") for m in eval_methods(wc)],
+        preop_model=f"{RESULTS}/seed_{{seed}}/preop/model.npz",
         masks=lambda wc: [
             f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{m}/step_{wc.step}/change_masks.npz"
             for m in mask_methods(wc)

@@ -17,13 +17,39 @@ rule ct_surface:
 
 
 rule preop_model:
+    """The preoperative model from the whole CT (issue 19): the step-0 HU volume's signed
+    distance over the grid, the preop sweep adding weight; `model.max_miss_fraction`
+    bounds the preop rays that may leave the CT's field of view."""
     input:
-        surface=rules.ct_surface.output.mesh,
+        manifest=rules.phantom.output.manifest,
         index=rules.render.output.index,
     output:
         model=f"{RESULTS}/seed_{{seed}}/preop/model.npz",
     log:
         f"{RESULTS}/logs/seed_{{seed}}/preop_model.log",
+    params:
+        opts=f"--voxel-size-mm {MC['voxel_size_mm']} --trunc-mm {MC['trunc_mm']} "
+        f"--max-miss-fraction {MC.get('max_miss_fraction', 0.05)}",
+    threads: 2
+    conda:
+        ENV
+    resources:
+        mem_mb=MEM_MB,
+    shell:
+        "python -m chisel build --from-ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz "
+        "--sequence $(dirname {input.index})/preop {params.opts} --no-progress "
+        "--out {output.model} > {log} 2>&1"
+
+
+rule preop_model_sweep:
+    """The paper's preoperative model: the CT surface rendered at the preop poses, fused."""
+    input:
+        surface=rules.ct_surface.output.mesh,
+        index=rules.render.output.index,
+    output:
+        model=f"{RESULTS}/seed_{{seed}}/preop/model_sweep.npz",
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/preop_model_sweep.log",
     params:
         opts=f"--voxel-size-mm {MC['voxel_size_mm']} --trunc-mm {MC['trunc_mm']}",
     threads: 2
@@ -33,7 +59,7 @@ rule preop_model:
         mem_mb=MEM_MB,
     shell:
         "python -m chisel build --surface {input.surface} --sequence $(dirname {input.index})/preop "
-        "{params.opts} --out {output.model} > {log} 2>&1"
+        "{params.opts} --no-progress --out {output.model} > {log} 2>&1"
 
 
 rule preop_ct_depth:
