@@ -30,5 +30,11 @@ result = evaluate_step(
     prev_gt_mesh_path=named_path(sm.input.manifest, steps[step - 1]["mesh"], "steps[].mesh")
     if masks
     else None,
+    removal_model_paths=dict(zip(sm.params.methods, sm.input.models, strict=True)),
+    preop_model_path=sm.input.preop_model,
+    ct_label_paths=(
+        named_path(sm.input.manifest, steps[0]["ct_label"], "steps[].ct_label"),
+        named_path(sm.input.manifest, steps[step]["ct_label"], "steps[].ct_label"),
+    ),
 )
 write_step_metrics(sm.output.metrics, result)
