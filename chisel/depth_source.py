@@ -17,6 +17,11 @@ An optional attribute ``is_metric: bool`` declares the depth to be in millimetre
 is still solved robustly so small calibration errors are absorbed. Sources without the
 attribute are treated as scale-free.
 
+A source that declares ``wants_prior = True`` is called as ``source(frame, prior_mm=R)``
+instead, with ``R`` the (H, W) float32 render of the model M_t at the frame's tracked pose
+(mm, NaN = no surface), the render the updater makes anyway (the change-aware network,
+``change-aware:CHECKPOINT``). :func:`estimate_depth` is the one place that calls a source.
+
 Built-ins: :class:`GroundTruthDepth` (the sequence's own depth), :class:`SequenceDepth`
 (depth maps of another sequence folder with the same frames), :class:`CallableDepth`
 (wrap any user callable), and ``network:CHECKPOINT`` through ``chisel.depth`` (loaded
@@ -128,6 +133,26 @@ def is_metric(source: Callable[[Frame], np.ndarray]) -> bool:
     return bool(getattr(source, "is_metric", False))
 
 
+def wants_prior(source: object) -> bool:
+    """True if ``source`` declares ``wants_prior``: it takes the model's render as ``prior_mm``."""
+    return bool(getattr(source, "wants_prior", False))
+
+
+def estimate_depth(
+    source: Callable[..., np.ndarray], frame: Frame, prior_mm: np.ndarray | None
+) -> np.ndarray:
+    """Call a depth source on ``frame``, handing it ``prior_mm`` (the model's render at the
+    frame's tracked pose) when it :func:`wants_prior`; raises if it wants one and gets None."""
+    if not wants_prior(source):
+        return source(frame)
+    if prior_mm is None:
+        raise InvalidInputError(
+            f"frame {frame.index}",
+            f"depth source {source!r} needs the model's render at the frame's pose (prior_mm)",
+        )
+    return source(frame, prior_mm=prior_mm)
+
+
 def load_network_source(checkpoint: str | Path) -> DepthSource:
     """Load the project's depth network (``chisel.depth``) as a depth source."""
     try:
@@ -149,8 +174,22 @@ def load_network_source(checkpoint: str | Path) -> DepthSource:
     return loader(Path(checkpoint))
 
 
+def load_change_aware_source(checkpoint: str | Path) -> DepthSource:
+    """Load the change-aware network (``chisel.depth.change_source``) as a depth source."""
+    try:
+        module = importlib.import_module("chisel.depth.change_source")
+    except ModuleNotFoundError as exc:
+        if exc.name not in ("chisel.depth", "chisel.depth.change_source", "chisel"):
+            raise
+        raise InvalidInputError(
+            "--depth-source", "change-aware depth needs the chisel.depth package, not installed here"
+        ) from None
+    return module.load_change_aware_source(Path(checkpoint))
+
+
 def depth_source_from_spec(spec: str, sequence: Sequence | None = None) -> DepthSource:
-    """Parse ``gt`` | ``sequence:PATH`` | ``network:CHECKPOINT`` into a depth source."""
+    """Parse ``gt`` | ``sequence:PATH`` | ``network:CHECKPOINT`` |
+    ``change-aware:CHECKPOINT`` into a depth source."""
     if spec == "gt":
         if sequence is not None and not sequence.has_depth:
             raise InvalidInputError(
@@ -162,6 +201,10 @@ def depth_source_from_spec(spec: str, sequence: Sequence | None = None) -> Depth
         return SequenceDepth(arg, of=sequence)
     if sep and arg and kind == "network":
         return load_network_source(arg)
+    if sep and arg and kind == "change-aware":
+        return load_change_aware_source(arg)
     raise InvalidInputError(
-        "--depth-source", f"expected 'gt', 'sequence:PATH' or 'network:CHECKPOINT', got {spec!r}"
+        "--depth-source",
+        "expected 'gt', 'sequence:PATH', 'network:CHECKPOINT' or 'change-aware:CHECKPOINT', "
+        f"got {spec!r}",
     )

@@ -54,7 +54,7 @@ from chisel.core.geometry import (
 )
 from chisel.core.raycast import MeshRaycaster
 from chisel.ct_model import CtInput, check_ct_covers_views, ct_tsdf
-from chisel.depth_source import is_metric
+from chisel.depth_source import estimate_depth, is_metric, wants_prior
 from chisel.fusion import (
     CARVE_DELETED,
     CARVE_FUSE,
@@ -474,12 +474,17 @@ class ChiselUpdater:
         return rep
 
     # ----------------------------------------------------------------- one frame
-    def estimate(self, frame: Frame) -> np.ndarray:
-        """The depth source's estimate for ``frame``, validated; (H, W) float32, NaN invalid."""
+    def estimate(self, frame: Frame, render_mm: np.ndarray | None = None) -> np.ndarray:
+        """The depth source's estimate for ``frame``, validated; (H, W) float32, NaN invalid.
+
+        render_mm : M_t at the frame's tracked pose, handed to a source that wants a prior."""
         if self.depth_source is None:
             raise InvalidInputError("depth_source", "no depth source given to the updater")
         return validate_estimate(
-            self.depth_source(frame), frame, self.camera, is_metric(self.depth_source)
+            estimate_depth(self.depth_source, frame, render_mm),
+            frame,
+            self.camera,
+            is_metric(self.depth_source),
         )
 
     def process(
@@ -515,8 +520,8 @@ class ChiselUpdater:
         """
         renderer = self.renderer
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
-        E = self.estimate(frame) if estimate is None else estimate
         R = renderer.render(self.camera, T) if render_mm is None else render_mm
+        E = self.estimate(frame, R) if estimate is None else estimate
         rep = FrameReport(index=frame.index, used=False)
         try:
             m_raw, scale, reg_res = self._m_prime(T, E, R, scale0)
@@ -706,16 +711,22 @@ def update_step(
     poses = [
         check_pose_in_model(model, f.T_world_from_cam, f"frame {f.index} pose") for f in frames
     ]
-    estimates = [validate_estimate(depth_source(f), f, camera, metric) for f in frames]
     step_cfg = cfg
     renders: list[np.ndarray | None] = [None] * len(frames)
     scales: list[float | None] = [None] * len(frames)
     F = None
     seq_reg = None
     renderer = None
-    if cfg.register:
+    if cfg.register or wants_prior(depth_source):
+        # M_t at every tracked pose: registration's reference, and the prior handed to a
+        # depth source that wants one (the change-aware network).
         renderer = ModelRenderer(model)
         renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
+    estimates = [
+        validate_estimate(estimate_depth(depth_source, f, R), f, camera, metric)
+        for f, R in zip(frames, renders, strict=True)
+    ]
+    if cfg.register:
         scale_free = _scale_free(cfg, depth_source)
         if scale_free:
             # Solved once per frame; every stage below starts from the same scales.

@@ -23,6 +23,9 @@ from chisel.depth.network import DepthNet, DepthNetConfig
 
 CHECKPOINT_FORMAT = "endoscopic-chisel/depth-checkpoint"
 CHECKPOINT_VERSION = 1
+KIND_MONOCULAR = "monocular"
+KIND_CHANGE_AWARE = "change-aware"
+"""Checkpoint kinds (``payload["kind"]``); a file without a kind is monocular (older files)."""
 
 
 class CheckpointError(InvalidInputError):
@@ -43,6 +46,20 @@ def nonfinite_tensors(tensors: dict[str, torch.Tensor]) -> list[str]:
         for k, v in tensors.items()
         if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all())
     ]
+
+
+def checkpoint_kind_error(
+    path: str | Path, payload: dict[str, Any], expected: str
+) -> CheckpointError | None:
+    """The error for a checkpoint of another kind than ``expected`` (naming both), or None."""
+    kind = payload.get("kind", KIND_MONOCULAR)
+    if kind == expected:
+        return None
+    return CheckpointError(
+        path,
+        f"this is a {kind!r} depth checkpoint, but a {expected!r} checkpoint is expected here "
+        f"(monocular: chisel depth train; change-aware: chisel depth train --kind change-aware)",
+    )
 
 
 def sidecar_path(path: str | Path) -> Path:
@@ -71,6 +88,7 @@ def save_checkpoint(path: str | Path, net: DepthNet, info: dict[str, Any] | None
     payload = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
+        "kind": KIND_MONOCULAR,
         "config": net.config.to_dict(),
         "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
         "info": info,
@@ -137,6 +155,9 @@ def load_checkpoint(
             f"depth checkpoint version {payload.get('version')!r}; this reader reads "
             f"version {CHECKPOINT_VERSION}",
         )
+    kind_error = checkpoint_kind_error(path, payload, KIND_MONOCULAR)
+    if kind_error is not None:
+        raise kind_error
     stored = DepthNetConfig.from_dict(payload.get("config", {}), f"{path} config")
     net = DepthNet(config or stored)
     state = payload.get("state_dict")
