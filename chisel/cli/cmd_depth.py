@@ -15,6 +15,7 @@ from typing import Any
 import torch
 
 from chisel.cli.args import Output, finite_float
+from chisel.core.errors import InvalidInputError
 from chisel.depth import (
     DEFAULT_CHECKPOINT,
     DepthNetConfig,
@@ -49,7 +50,29 @@ Monocular depth network (relative z-depth from one RGB frame; the updater solves
   evaluate  median-scaled abs-rel, RMSE (mm), delta<1.25 against sequences' own depth
   export    TorchScript (.pt) or ONNX (.onnx, needs the onnx package): uint8
             (B, H, W, 3) RGB -> (B, H, W) float32 relative depth
+
+--kind change-aware (train, finetune, export): the change-aware network instead, whose
+input is the frame plus the model's depth render at the tracked pose and whose output is
+metric depth in mm (docs/depth.md); it trains on `python -m sim dataset` folders (priors
+rendered from the phantoms' previous-step meshes), bounded by --steps.
 """
+
+_KINDS = ("monocular", "change-aware")
+
+
+def _change_aware(args: argparse.Namespace) -> bool:
+    """True for --kind change-aware; --steps/--mesh are refused for the monocular kind."""
+    if args.kind == "change-aware":
+        for flag in ("size", "blocks"):
+            if getattr(args, flag, None) is not None:
+                raise InvalidInputError(f"--{flag}", "is an option of the monocular kind only")
+        if args.steps is None:
+            args.steps = 600 if args.depth_command == "train" else 60
+        return True
+    for flag in ("steps", "mesh"):
+        if getattr(args, flag, None) is not None:
+            raise InvalidInputError(f"--{flag}", "is an option of --kind change-aware only")
+    return False
 
 
 def _checkpoint_sidecar(args: argparse.Namespace) -> Path:
@@ -142,6 +165,10 @@ _TRAIN_OPTS = [
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    if _change_aware(args):
+        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - imports this module
+
+        return cmd_change_aware.train(args)
     out = Path(args.out)
     refs = find_sequences(args.data)
     check_training_seeds(refs)
@@ -223,6 +250,10 @@ _FINETUNE_OPTS = [
 
 
 def _cmd_finetune(args: argparse.Namespace) -> int:
+    if _change_aware(args):
+        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - imports this module
+
+        return cmd_change_aware.finetune(args)
     parent = Path(args.checkpoint)
     net, parent_info = load_checkpoint(parent)
     refs = [SequenceRef(Path(p), None) for p in args.sequence]
@@ -284,6 +315,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    if args.kind == "change-aware":
+        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - imports this module
+
+        return cmd_change_aware.export(args)
     net, _ = load_checkpoint(args.checkpoint)
     out = export_model(DepthPredictor(net), args.out)
     sys.stdout.write(json.dumps({"exported": str(out)}) + "\n")
@@ -317,7 +352,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         q.add_argument("--frame-step", type=int, default=1, help="use every N-th frame (default 1)")
         q.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
         q.add_argument("--no-augment", action="store_true", help="no flips / colour jitter")
+        kind(q)
+        q.add_argument(
+            "--steps",
+            type=int,
+            default=None,
+            help="change-aware only: optimisation steps (default 600 train, 60 finetune)",
+        )
         common(q)
+
+    def kind(q: argparse.ArgumentParser) -> None:
+        q.add_argument(
+            "--kind",
+            choices=_KINDS,
+            default="monocular",
+            help="monocular (default): relative depth from RGB; change-aware: RGB + the "
+            "model's render at the tracked pose -> metric depth (mm)",
+        )
 
     t = sub.add_parser("train", help="train from scratch on rendered sequences")
     t.add_argument(
@@ -379,6 +430,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         sidecar=_checkpoint_sidecar,
     )
     training(f, epochs=3, lr=1e-4)
+    f.add_argument(
+        "--mesh",
+        default=None,
+        help="change-aware only: the CT surface mesh (PLY/STL/OBJ, mm) rendered as the prior",
+    )
     f.set_defaults(func=_cmd_finetune)
 
     pr = sub.add_parser("predict", help="write a new sequence with predicted depth")
@@ -414,4 +470,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     x.add_argument(
         "--out", required=True, help="model.pt (TorchScript) or model.onnx", action=Output
     )
+    kind(x)
     x.set_defaults(func=_cmd_export)

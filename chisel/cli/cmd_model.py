@@ -171,7 +171,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--depth-source",
         default="gt",
         help="gt (the sequence's depth, mm) | sequence:PATH (depth maps of another "
-        "sequence folder) | network:CHECKPOINT (chisel.depth network, relative depth)",
+        "sequence folder) | network:CHECKPOINT (chisel.depth network, relative depth) | "
+        "change-aware:CHECKPOINT (frame + the model's render at the tracked pose -> mm)",
     )
     p.add_argument(
         "--no-registration",
@@ -452,7 +453,7 @@ def _cmd_update(args: argparse.Namespace) -> int:
     if args.depth_noise_mm > 0:
         source = _NoisyDepth(source, args.depth_noise_mm, args.depth_noise_seed)
     n = len(seq) if args.max_frames is None else min(args.max_frames, len(seq))
-    needs_rgb = not getattr(source, "is_metric", False)
+    needs_rgb = getattr(source, "needs_rgb", not getattr(source, "is_metric", False))
     frames = [seq.frame(i, rgb=needs_rgb or model.color is not None) for i in range(n)]
     new_model, report = update_step(
         model,

@@ -1,0 +1,190 @@
+"""``chisel depth train|finetune|export --kind change-aware``: the change-aware network.
+
+Thin wrappers: read the dataset / sequence / mesh, call :mod:`chisel.depth.change_train`,
+write the checkpoint (``kind: change-aware``) with the exact command that reproduces it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from chisel.cli.cmd_depth import _canonical_command, _environment, _sha256
+from chisel.core.errors import InvalidInputError
+from chisel.depth.change_aware import (
+    ChangeAwarePredictor,
+    ChangeNetConfig,
+    load_change_checkpoint,
+    num_parameters,
+    save_change_checkpoint,
+)
+from chisel.depth.change_source import export_change_aware
+from chisel.depth.change_train import ChangeTrainConfig, train_change_aware
+from chisel.depth.prior_data import (
+    build_prior_set,
+    check_change_training_seeds,
+    preop_prior_set,
+    read_step_dataset,
+)
+from chisel.io.sequence import Sequence
+
+log = logging.getLogger(__name__)
+
+TRAIN_OPTS = [
+    "kind",
+    "data",
+    "out",
+    "steps",
+    "batch_size",
+    "lr",
+    "seed",
+    "val_fraction",
+    "frame_step",
+    "widths",
+    "max_minutes",
+    "threads",
+    "device",
+    "note",
+]
+FINETUNE_OPTS = [
+    "kind",
+    "checkpoint",
+    "sequence",
+    "mesh",
+    "out",
+    "steps",
+    "batch_size",
+    "lr",
+    "seed",
+    "frame_step",
+    "threads",
+    "device",
+]
+
+
+def _split_seeds(seeds: list[int], val_fraction: float, seed: int) -> set[int]:
+    if not 0.0 <= val_fraction < 1.0:
+        raise InvalidInputError("--val-fraction", f"must be in [0, 1), got {val_fraction}")
+    n_val = 0
+    if val_fraction > 0 and len(seeds) >= 2:
+        n_val = min(len(seeds) - 1, max(1, round(val_fraction * len(seeds))))
+    rng = np.random.default_rng(seed)
+    return set(rng.choice(seeds, size=n_val, replace=False).tolist()) if n_val else set()
+
+
+def train(args: argparse.Namespace) -> int:
+    """``chisel depth train --kind change-aware``."""
+    refs = read_step_dataset(args.data)
+    check_change_training_seeds(refs)
+    seeds = sorted({r.seed for r in refs})
+    val_seeds = _split_seeds(seeds, args.val_fraction, args.seed)
+    train_refs = [r for r in refs if r.seed not in val_seeds]
+    val_refs = [r for r in refs if r.seed in val_seeds]
+    log.info("train seeds %s, validation seeds %s", sorted(set(seeds) - val_seeds), val_seeds)
+    pairs = build_prior_set(train_refs, frame_step=args.frame_step)
+    val_pairs = build_prior_set(val_refs, frame_step=args.frame_step) if val_refs else None
+    net_config = ChangeNetConfig(widths=args.widths or ChangeNetConfig().widths)
+    cfg = ChangeTrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        max_minutes=args.max_minutes,
+        num_threads=args.threads,
+        device=args.device,
+    )
+    result = train_change_aware(pairs, cfg, net_config, val_pairs=val_pairs, progress=True)
+    info = {
+        "kind": "train",
+        "command": _canonical_command(args, TRAIN_OPTS),
+        "train_phantom_seeds": sorted(set(seeds) - val_seeds),
+        "val_phantom_seeds": sorted(val_seeds),
+        "train_sequences": [str(r.path) for r in train_refs],
+        "num_train_frames": len(pairs),
+        "num_val_frames": 0 if val_pairs is None else len(val_pairs),
+        "changed_pixel_fraction": float(pairs.changed.float().mean()),
+        "image_size": [int(pairs.rgb.shape[2]), int(pairs.rgb.shape[1])],
+        "train_config": cfg.to_dict(),
+        "num_parameters": num_parameters(result.net),
+        "val_metrics": result.val_metrics,
+        "best_step": result.best_step,
+        "stopped_early": result.stopped_early,
+        "train_seconds": round(result.seconds, 1),
+        "history": result.history,
+        "note": args.note,
+        "environment": _environment(),
+    }
+    save_change_checkpoint(args.out, result.net, info)
+    summary = {"checkpoint": str(args.out), "val_metrics": result.val_metrics}
+    sys.stdout.write(json.dumps(summary | {"train_seconds": info["train_seconds"]}) + "\n")
+    return 0
+
+
+def finetune(args: argparse.Namespace) -> int:
+    """``chisel depth finetune --kind change-aware --mesh CT_SURFACE``."""
+    if args.mesh is None:
+        raise InvalidInputError(
+            "--mesh", "change-aware fine-tuning needs the CT surface mesh (the prior)"
+        )
+    parent = Path(args.checkpoint)
+    net, parent_info = load_change_checkpoint(parent)
+    mesh = trimesh.load(args.mesh, force="mesh", process=False)
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InvalidInputError(args.mesh, "not a triangle mesh with faces")
+    seqs = [Sequence(p) for p in args.sequence]
+    parts = [preop_prior_set(s, mesh, frame_step=args.frame_step) for s in seqs]
+    targets = sorted({what for _, what in parts})
+    pairs = parts[0][0]
+    if len(parts) > 1:
+        import torch  # noqa: PLC0415
+
+        from chisel.depth.change_train import PriorSet  # noqa: PLC0415
+
+        pairs = PriorSet(
+            *(torch.cat([getattr(p, k) for p, _ in parts]) for k in
+              ("rgb", "prior_mm", "target_mm", "changed")),
+            sum((p.sources for p, _ in parts), []),
+        )  # fmt: skip
+    cfg = ChangeTrainConfig.finetune_defaults(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        num_threads=args.threads,
+        device=args.device,
+    )
+    result = train_change_aware(pairs, cfg, init=net, progress=True)
+    info = {
+        "kind": "finetune",
+        "command": _canonical_command(args, FINETUNE_OPTS),
+        "target": targets,
+        "parent_checkpoint": str(parent),
+        "parent_sha256": _sha256(parent),
+        "parent_info": {k: v for k, v in parent_info.items() if k != "history"},
+        "finetune_sequences": [str(s.path) for s in seqs],
+        "num_train_frames": len(pairs),
+        "train_config": cfg.to_dict(),
+        "train_seconds": round(result.seconds, 1),
+        "history": result.history,
+        "environment": _environment(),
+    }
+    save_change_checkpoint(args.out, result.net, info)
+    final = result.history[-1]["loss"] if result.history else None
+    sys.stdout.write(
+        json.dumps({"checkpoint": str(args.out), "target": targets, "final_loss": final}) + "\n"
+    )
+    return 0
+
+
+def export(args: argparse.Namespace) -> int:
+    """``chisel depth export --kind change-aware``: TorchScript only."""
+    net, _ = load_change_checkpoint(args.checkpoint)
+    out = export_change_aware(ChangeAwarePredictor(net), args.out)
+    sys.stdout.write(json.dumps({"exported": str(out), "kind": "change-aware"}) + "\n")
+    return 0

@@ -1,0 +1,341 @@
+"""The change-aware depth network: the frame plus the model's render in, metric depth out.
+
+A monocular network must guess shape and scale from one image. At update time we also
+hold the model's depth render M_t at the frame's tracked pose: metric, and correct
+wherever nothing changed. :class:`ChangeNet` sees both (RGB, the render's log-depth about
+its median, the render's validity) and predicts a per-pixel **log-ratio correction** to
+the render plus a **change logit**:
+
+    depth_mm = prior_mm * exp(r)          (NaN where the render is invalid)
+    p_change = sigmoid(c)
+
+The head starts at zero, so an untrained network returns the render itself; training only
+has to learn where the render is no longer true and how much deeper the surface lies
+there. The output is metric by construction (``is_metric = True`` as a depth source).
+
+The network runs at ``input_scale`` of the frame (default 1/2: 160x128 for 320x256); its
+correction is upsampled (bilinear) and applied to the full-resolution render, so
+unchanged tissue keeps the render's full detail. :class:`ChangeAwarePredictor` wraps the
+network with the normalisation and is what is scripted, exported and run.
+
+Checkpoints share the monocular network's file format (``chisel.depth.checkpoint``) with
+``"kind": "change-aware"``; a checkpoint of one kind given where the other is expected is
+refused naming both kinds.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from chisel.core.atomic import atomic_path, atomic_write_text
+from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.depth.checkpoint import (
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_VERSION,
+    KIND_CHANGE_AWARE,
+    CheckpointError,
+    checkpoint_kind_error,
+    nonfinite_tensors,
+    sidecar_path,
+)
+
+KIND = KIND_CHANGE_AWARE
+"""The ``kind`` recorded in change-aware checkpoints and TorchScript exports."""
+
+DEFAULT_CHANGE_CHECKPOINT = Path(__file__).with_name("checkpoints") / "change_aware.pt"
+"""The change-aware checkpoint shipped with the package (command in its ``.json``)."""
+
+
+@dataclass(frozen=True)
+class ChangeNetConfig:
+    """Architecture of :class:`ChangeNet`; stored in every checkpoint (JSON-able)."""
+
+    widths: tuple[int, ...] = (8, 16, 32, 48)
+    """Channels per level; level k runs at 1/2**k of the network's input (level 0 = the
+    network's own resolution, ``input_scale`` of the frame). The narrow first level keeps
+    the full-resolution work small (85 k parameters in all)."""
+    input_scale: float = 0.5
+    """The network sees the frame and render resized by this factor (area filter); its
+    correction is upsampled back. 0.5: 320x256 -> 160x128."""
+    max_log_correction: float = 1.5
+    """|r| is bounded by this (tanh): depth stays within exp(+-1.5) = 0.22x-4.5x of the
+    render, so the output is finite and positive whatever the weights."""
+    rgb_mean: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    """Per-channel mean subtracted from RGB scaled to [0, 1]."""
+    rgb_std: tuple[float, float, float] = (0.25, 0.25, 0.25)
+    """Per-channel divisor applied after the mean."""
+
+    def __post_init__(self) -> None:
+        widths = tuple(int(w) for w in self.widths)
+        object.__setattr__(self, "widths", widths)
+        object.__setattr__(self, "input_scale", float(self.input_scale))
+        object.__setattr__(self, "max_log_correction", float(self.max_log_correction))
+        object.__setattr__(self, "rgb_mean", tuple(float(m) for m in self.rgb_mean))
+        object.__setattr__(self, "rgb_std", tuple(float(s) for s in self.rgb_std))
+        if not 2 <= len(widths) <= 6 or any(w < 1 for w in widths):
+            raise InvalidInputError(
+                "ChangeNetConfig.widths", f"need 2-6 positive widths, got {widths}"
+            )
+        if not 0.1 <= self.input_scale <= 1.0:
+            raise InvalidInputError(
+                "ChangeNetConfig.input_scale", f"must be in [0.1, 1], got {self.input_scale}"
+            )
+        if not 0.0 < self.max_log_correction <= 5.0:
+            raise InvalidInputError(
+                "ChangeNetConfig.max_log_correction",
+                f"must be in (0, 5], got {self.max_log_correction}",
+            )
+        if len(self.rgb_mean) != 3 or len(self.rgb_std) != 3 or min(self.rgb_std) <= 0:
+            raise InvalidInputError(
+                "ChangeNetConfig.rgb_mean/rgb_std",
+                f"need 3 values each and positive std, got {self.rgb_mean}, {self.rgb_std}",
+            )
+
+    @property
+    def stride(self) -> int:
+        """The network's input is padded to a multiple of this."""
+        return 2 ** (len(self.widths) - 1)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], source: str = "config") -> ChangeNetConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise InvalidInputError(
+                source,
+                f"unknown ChangeNetConfig field(s) {sorted(unknown)}; known: {sorted(known)}",
+            )
+        try:
+            return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+        except TypeError as exc:
+            raise InvalidInputError(source, f"bad ChangeNetConfig: {exc}") from None
+
+
+def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False),
+        nn.BatchNorm2d(c_out),
+        nn.ReLU(inplace=True),
+    )
+
+
+IN_CHANNELS = 5
+"""RGB (3, normalised), the render's log-depth about its median (0 where invalid), and
+the render's validity (fraction of valid pixels per network pixel)."""
+
+
+class ChangeNet(nn.Module):
+    """A small U-Net: (B, 5, h, w) -> (B, 2, h, w) = (log-ratio correction, change logit).
+
+    h and w must be multiples of ``config.stride``. The head is zero-initialised: an
+    untrained network's correction is 0 (output = the render) and its change logit 0.
+    """
+
+    def __init__(self, config: ChangeNetConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or ChangeNetConfig()
+        w = self.config.widths
+        self.stem = nn.Sequential(_conv(IN_CHANNELS, w[0]), _conv(w[0], w[0]))
+        self.down = nn.ModuleList(
+            [nn.Sequential(_conv(w[k], w[k + 1], stride=2), _conv(w[k + 1], w[k + 1]))
+             for k in range(len(w) - 1)]
+        )  # fmt: skip
+        self.up = nn.ModuleList([_conv(w[k + 1] + w[k], w[k]) for k in range(len(w) - 2, -1, -1)])
+        self.head = nn.Conv2d(w[0], 2, 3, 1, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.stem(x)
+        skips: list[torch.Tensor] = [y]
+        for stage in self.down:
+            y = stage(y)
+            skips.append(y)
+        n = len(skips)
+        for i, block in enumerate(self.up):
+            skip = skips[n - 2 - i]
+            y = F.interpolate(
+                y, size=(skip.shape[2], skip.shape[3]), mode="bilinear", align_corners=False
+            )
+            y = block(torch.cat([y, skip], dim=1))
+        return self.head(y)
+
+
+class ChangeAwarePredictor(nn.Module):
+    """uint8 RGB and the render in, metric depth and change probability out.
+
+    forward(rgb, prior_mm):
+      rgb : (B, H, W, 3) uint8 (or float in [0, 255]); prior_mm : (B, H, W) float32 z-depth
+      of the model's render at the tracked pose, mm, NaN (or <= 0) = invalid.
+      Returns ``(depth_mm, p_change)``, both (B, H, W) float32: depth = prior * exp(r),
+      NaN where the render is invalid; p_change in [0, 1].
+    This is the module that is scripted, exported (TorchScript) and run.
+    """
+
+    def __init__(self, net: ChangeNet) -> None:
+        super().__init__()
+        self.net = net
+        cfg = net.config
+        self.kind = KIND
+        self.stride = int(cfg.stride)
+        self.input_scale = float(cfg.input_scale)
+        self.max_log_correction = float(cfg.max_log_correction)
+        self.register_buffer("mean", torch.tensor(cfg.rgb_mean).view(1, 3, 1, 1) * 255.0)
+        self.register_buffer("std", torch.tensor(cfg.rgb_std).view(1, 3, 1, 1) * 255.0)
+
+    def net_size(self, h: int, w: int) -> tuple[int, int]:
+        """(height, width) the network works at for an (h, w) frame."""
+        if self.input_scale == 1.0:
+            return h, w
+        return max(1, int(round(h * self.input_scale))), max(1, int(round(w * self.input_scale)))
+
+    def raw(self, rgb: torch.Tensor, prior_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(r, c): log-ratio correction and change logit, (B, 1, H, W) each, at full size."""
+        if rgb.dim() != 4 or rgb.shape[3] != 3:
+            raise ValueError("ChangeAwarePredictor expects (B, H, W, 3) RGB")
+        if (
+            prior_mm.dim() != 3
+            or prior_mm.shape[0] != rgb.shape[0]
+            or (prior_mm.shape[1] != rgb.shape[1] or prior_mm.shape[2] != rgb.shape[2])
+        ):
+            raise ValueError("ChangeAwarePredictor expects a (B, H, W) prior of the frame's size")
+        b = rgb.shape[0]
+        h = rgb.shape[1]
+        w = rgb.shape[2]
+        x = (rgb.permute(0, 3, 1, 2).float() - self.mean) / self.std
+        prior = prior_mm.float()
+        valid = torch.isfinite(prior) & (prior > 0)
+        safe = torch.where(valid, prior, torch.ones_like(prior))
+        log_p = torch.log(safe)
+        # The render's log-depth about its own median: the network sees shape, not scale.
+        ref = torch.nanmedian(torch.where(valid, log_p, torch.full_like(log_p, float("nan")))
+                              .reshape(b, -1), dim=1).values  # fmt: skip
+        ref = torch.where(torch.isfinite(ref), ref, torch.zeros_like(ref))
+        vf = valid.float()
+        rel = (log_p - ref.view(b, 1, 1)) * vf
+        inp = torch.cat([x, rel[:, None], vf[:, None]], dim=1)
+        sh, sw = self.net_size(h, w)
+        if sh != h or sw != w:
+            small = F.interpolate(inp, size=(sh, sw), mode="area")
+            v_small = small[:, 4:5]
+            rel_small = small[:, 3:4] / v_small.clamp(min=1e-6)
+            inp = torch.cat([small[:, :3], rel_small, v_small], dim=1)
+        pad_h = (self.stride - sh % self.stride) % self.stride
+        pad_w = (self.stride - sw % self.stride) % self.stride
+        if pad_h > 0 or pad_w > 0:
+            inp = F.pad(inp, [0, pad_w, 0, pad_h], mode="replicate")
+        y = self.net(inp)[:, :, :sh, :sw]
+        if sh != h or sw != w:
+            y = F.interpolate(y, size=(h, w), mode="bilinear", align_corners=False)
+        r = self.max_log_correction * torch.tanh(y[:, 0:1] / self.max_log_correction)
+        return r, y[:, 1:2]
+
+    def forward(
+        self, rgb: torch.Tensor, prior_mm: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        r, c = self.raw(rgb, prior_mm)
+        prior = prior_mm.float()
+        valid = torch.isfinite(prior) & (prior > 0)
+        depth = torch.where(valid, prior * torch.exp(r[:, 0]), torch.full_like(prior, float("nan")))
+        return depth, torch.sigmoid(c[:, 0])
+
+
+def num_parameters(net: nn.Module) -> int:
+    return int(sum(p.numel() for p in net.parameters()))
+
+
+def save_change_checkpoint(
+    path: str | Path, net: ChangeNet, info: dict[str, Any] | None = None
+) -> Path:
+    """Write a change-aware checkpoint (``kind: change-aware``) and its ``.json`` sidecar."""
+    path = Path(path)
+    if path.suffix != ".pt":
+        raise InvalidInputError(path, f"checkpoint file must end in .pt, got {path.suffix!r}")
+    try:
+        info = json.loads(json.dumps(dict(info or {})))
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(path, f"checkpoint info must be JSON-able: {exc}") from None
+    bad = nonfinite_tensors(dict(net.state_dict()))
+    if bad:
+        raise CheckpointError(
+            path, f"refusing to save a network with NaN/inf in {len(bad)} tensor(s), e.g. {bad[:3]}"
+        )
+    head = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "kind": KIND}
+    payload = {
+        **head,
+        "config": net.config.to_dict(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
+        "info": info,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    sidecar = {
+        **head,
+        "weights": path.name,
+        "num_parameters": num_parameters(net),
+        "config": net.config.to_dict(),
+        "info": info,
+    }
+    atomic_write_text(sidecar_path(path), json.dumps(sidecar, indent=2) + "\n")
+    return path
+
+
+def load_change_checkpoint(path: str | Path) -> tuple[ChangeNet, dict[str, Any]]:
+    """Load a change-aware checkpoint into a fresh :class:`ChangeNet` (eval, CPU).
+
+    A monocular checkpoint (kind ``monocular``, or no kind: the older files) is refused
+    with a :class:`CheckpointError` naming both kinds. Returns ``(net, info)``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(path, "checkpoint file does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a foreign/corrupt file
+        raise CheckpointError(
+            path,
+            f"cannot read as a depth checkpoint with weights_only=True ({type(exc).__name__})",
+        ) from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(path, f"not a depth checkpoint (expected {CHECKPOINT_FORMAT!r})")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise FormatVersionError(
+            path,
+            f"depth checkpoint version {payload.get('version')!r}, expected {CHECKPOINT_VERSION}",
+        )
+    kind_error = checkpoint_kind_error(path, payload, KIND)
+    if kind_error is not None:
+        raise kind_error
+    config = ChangeNetConfig.from_dict(payload.get("config", {}), f"{path} config")
+    net = ChangeNet(config)
+    state = payload.get("state_dict")
+    if not isinstance(state, dict):
+        raise CheckpointError(path, "no state_dict in checkpoint")
+    expected = net.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    shapes = [
+        k for k in set(expected) & set(state) if tuple(expected[k].shape) != tuple(state[k].shape)
+    ]
+    if missing or unexpected or shapes:
+        raise CheckpointError(
+            path,
+            f"weights do not match the architecture {config.to_dict()}: missing {missing[:3]}, "
+            f"unexpected {unexpected[:3]}, mis-shaped {sorted(shapes)[:3]}",
+        )
+    bad = nonfinite_tensors(state)
+    if bad:
+        raise CheckpointError(path, f"{len(bad)} weight tensor(s) hold NaN/inf, e.g. {bad[:3]}")
+    net.load_state_dict(state, strict=True)
+    net.eval()
+    return net, dict(payload.get("info", {}))

@@ -1,0 +1,226 @@
+"""Training pairs for the change-aware network: frame + prior render -> true depth.
+
+For every frame of a surgical step k the *prior* is the previous step's surface (step
+k-1's mesh; step 0's for the preoperative sweep, which has no change) rendered at the
+frame's **tracked** pose, so the network learns to live with tracking error; the target
+is the frame's true depth. The change label marks pixels whose true depth lies deeper than
+the previous surface rendered at the **true** pose by more than ``threshold_mm``
+(removed tissue; tracking error alone never sets it).
+
+Inputs follow the dataset layout of ``python -m sim dataset`` (read as files only:
+``chisel`` never imports ``sim`` or ``phantoms``)::
+
+    DIR/dataset.json          {"sequences": [{"path", "phantom_seed", "kind", "step"}, ...]}
+    DIR/phantoms/seed_S/phantom.json   {"steps": [{"step": k, "mesh": "meshes/step_kk.ply"}]}
+
+Per-patient fine-tuning (:func:`preop_prior_set`) uses the preoperative sequence and the
+CT surface mesh: prior = the CT surface at the tracked pose; target = the CT surface at
+the true pose where the sequence has true poses (synthetic data), else the prior itself
+(real data: the preop sweep shows no change, so the network learns "this patient's
+tissue, unchanged, is the render").
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.raycast import MeshRaycaster
+from chisel.depth.change_train import PriorSet
+from chisel.depth.data import DATASET_INDEX, RESERVED_EVAL_SEEDS
+from chisel.io.sequence import Sequence
+
+log = logging.getLogger(__name__)
+
+CHANGE_THRESHOLD_MM = 1.0
+"""Depth growth that labels a pixel as changed (the paper's change threshold)."""
+
+
+@dataclass(frozen=True)
+class StepSequenceRef:
+    """A rendered sequence of one surgical step and the phantom it shows."""
+
+    path: Path
+    """Sequence folder (RGB, depth at the true pose, tracked and true poses)."""
+    seed: int
+    """Phantom seed."""
+    step: int
+    """Surgical step shown (0 = preoperative sweep)."""
+    phantom_dir: Path
+    """Phantom folder (``phantom.json`` and the meshes per step)."""
+
+
+def read_step_dataset(inputs: list[str | Path]) -> list[StepSequenceRef]:
+    """Step sequences of dataset folders (or ``dataset.json`` files) from ``sim dataset``."""
+    if not inputs:
+        raise InvalidInputError("--data", "no dataset given")
+    refs = []
+    for item in inputs:
+        index = Path(item)
+        if index.is_dir():
+            index = index / DATASET_INDEX
+        try:
+            doc = json.loads(index.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InvalidInputError(index, f"cannot read dataset index: {exc}") from None
+        entries = doc.get("sequences") if isinstance(doc, dict) else None
+        if not isinstance(entries, list) or not entries:
+            raise InvalidInputError(index, "expected a non-empty 'sequences' list")
+        for i, e in enumerate(entries):
+            where = f"{index} sequences[{i}]"
+            if not isinstance(e, dict) or not all(k in e for k in ("path", "phantom_seed", "step")):
+                raise InvalidInputError(
+                    where, "change-aware training needs path, phantom_seed and step per entry "
+                    "(a dataset from python -m sim dataset)",
+                )  # fmt: skip
+            seed, step = int(e["phantom_seed"]), int(e["step"])
+            refs.append(
+                StepSequenceRef(
+                    index.parent / e["path"], seed, step, index.parent / "phantoms" / f"seed_{seed}"
+                )
+            )
+    return refs
+
+
+def check_change_training_seeds(refs: list[StepSequenceRef]) -> None:
+    """Raise if a sequence shows a phantom reserved for evaluation (seeds 0-99)."""
+    bad = sorted({r.seed for r in refs if r.seed in RESERVED_EVAL_SEEDS})
+    if bad:
+        raise InvalidInputError(
+            "training data",
+            f"phantom seeds {bad[:10]} are evaluation seeds ({RESERVED_EVAL_SEEDS.start}-"
+            f"{RESERVED_EVAL_SEEDS.stop - 1}); train on seeds >= 1000",
+        )
+
+
+def phantom_step_mesh(phantom_dir: str | Path, step: int) -> trimesh.Trimesh:
+    """The surface mesh of surgical step ``step`` of a phantom folder (world mm)."""
+    phantom_dir = Path(phantom_dir)
+    header = phantom_dir / "phantom.json"
+    try:
+        doc = json.loads(header.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InvalidInputError(header, f"cannot read phantom header: {exc}") from None
+    steps = {int(s["step"]): s for s in doc.get("steps", []) if "step" in s and "mesh" in s}
+    if step not in steps:
+        raise InvalidInputError(header, f"no mesh for step {step} (steps: {sorted(steps)})")
+    mesh_path = phantom_dir / steps[step]["mesh"]
+    mesh = trimesh.load(mesh_path, force="mesh", process=False)
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InvalidInputError(mesh_path, "not a triangle mesh with faces")
+    return mesh
+
+
+def _frame_indices(n: int, frame_step: int) -> list[int]:
+    if frame_step < 1:
+        raise InvalidInputError("frame_step", f"must be >= 1, got {frame_step}")
+    return list(range(0, n, frame_step))
+
+
+def _valid_target(seq: Sequence, i: int) -> np.ndarray:
+    depth = seq.depth_mm(i)
+    mask = seq.mask(i)
+    return depth if mask is None else np.where(mask, depth, np.float32(np.nan)).astype(np.float32)
+
+
+def build_prior_set(
+    refs: list[StepSequenceRef],
+    frame_step: int = 1,
+    threshold_mm: float = CHANGE_THRESHOLD_MM,
+    min_valid_fraction: float = 0.05,
+) -> PriorSet:
+    """Render every ``frame_step``-th frame's prior and change label; see the module doc.
+
+    Frames whose prior and target overlap on fewer than ``min_valid_fraction`` of the
+    pixels are skipped. Every sequence must share one image size.
+    """
+    rgbs, priors, targets, labels, sources = [], [], [], [], []
+    shape: tuple[int, int] | None = None
+    for ref in refs:
+        seq = Sequence(ref.path)
+        if not (seq.has_rgb and seq.has_depth) or seq.true_poses is None:
+            raise InvalidInputError(
+                ref.path,
+                "change-aware training needs RGB, depth and true poses (a rendered sequence)",
+            )
+        if shape is None:
+            shape = seq.camera.shape
+        elif seq.camera.shape != shape:
+            raise InvalidInputError(
+                ref.path, f"image size {seq.camera.shape} != {shape} of earlier sequences"
+            )
+        mesh = phantom_step_mesh(ref.phantom_dir, max(ref.step - 1, 0))
+        rc = MeshRaycaster(mesh.vertices, mesh.faces)
+        idx = _frame_indices(len(seq), frame_step)
+        prior = rc.render_depths(seq.camera, seq.poses[idx])
+        prior_true = rc.render_depths(seq.camera, seq.true_poses[idx])
+        for j, i in enumerate(idx):
+            target = _valid_target(seq, i)
+            both = np.isfinite(prior[j]) & np.isfinite(target)
+            if both.mean() < min_valid_fraction:
+                continue
+            with np.errstate(invalid="ignore"):
+                changed = np.isfinite(target) & (
+                    ~np.isfinite(prior_true[j]) | (target - prior_true[j] > threshold_mm)
+                )
+            rgbs.append(seq.rgb(i))
+            priors.append(prior[j])
+            targets.append(target)
+            labels.append(changed & np.isfinite(prior[j]))
+            sources.append(f"{ref.path}#{i}")
+    if not rgbs:
+        raise EmptyResultError(f"no usable frame in {len(refs)} sequence(s)")
+    log.info("built %d prior/target pairs from %d sequences", len(rgbs), len(refs))
+    return PriorSet(
+        rgb=torch.from_numpy(np.stack(rgbs)),
+        prior_mm=torch.from_numpy(np.stack(priors).astype(np.float32)),
+        target_mm=torch.from_numpy(np.stack(targets).astype(np.float32)),
+        changed=torch.from_numpy(np.stack(labels)),
+        sources=sources,
+    )
+
+
+def preop_prior_set(
+    sequence: Sequence, mesh: trimesh.Trimesh, frame_step: int = 1
+) -> tuple[PriorSet, str]:
+    """Fine-tuning pairs from the preoperative sequence and the CT surface mesh.
+
+    Returns the pairs and what the target is: ``"ct-render-true-pose"`` (the sequence has
+    true poses) or ``"ct-render-tracked-pose"`` (real data: target = prior, no change).
+    """
+    if not sequence.has_rgb:
+        raise InvalidInputError(sequence.path, "fine-tuning needs the preop sequence's RGB")
+    rc = MeshRaycaster(mesh.vertices, mesh.faces)
+    idx = _frame_indices(len(sequence), frame_step)
+    prior = rc.render_depths(sequence.camera, sequence.poses[idx])
+    if sequence.true_poses is not None:
+        target, what = (
+            rc.render_depths(sequence.camera, sequence.true_poses[idx]),
+            "ct-render-true-pose",
+        )
+    else:
+        target, what = prior.copy(), "ct-render-tracked-pose"
+    keep = [j for j in range(len(idx)) if np.isfinite(prior[j]).mean() >= 0.05]
+    if not keep:
+        raise EmptyResultError(f"{sequence.path}: the CT surface is seen in no frame")
+    rgb = []
+    for j in keep:
+        mask = sequence.mask(idx[j])
+        if mask is not None:
+            target[j][~mask] = np.nan
+        rgb.append(sequence.rgb(idx[j]))
+    pairs = PriorSet(
+        rgb=torch.from_numpy(np.stack(rgb)),
+        prior_mm=torch.from_numpy(prior[keep].astype(np.float32)),
+        target_mm=torch.from_numpy(target[keep].astype(np.float32)),
+        changed=torch.zeros(prior[keep].shape, dtype=torch.bool),
+        sources=[f"{sequence.path}#{idx[j]}" for j in keep],
+    )
+    return pairs, what

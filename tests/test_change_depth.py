@@ -1,0 +1,287 @@
+"""The change-aware depth network (chisel.depth.change_aware): tiny images, seconds."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera
+from chisel.core.raycast import MeshRaycaster
+from chisel.depth import DepthNet, DepthNetConfig, DepthPredictor, export_model, save_checkpoint
+from chisel.depth.change_aware import (
+    ChangeAwarePredictor,
+    ChangeNet,
+    ChangeNetConfig,
+    load_change_checkpoint,
+    save_change_checkpoint,
+)
+from chisel.depth.change_source import (
+    ChangeAwareDepthSource,
+    export_change_aware,
+    load_change_aware_source,
+)
+from chisel.depth.change_train import (
+    ChangeTrainConfig,
+    PriorSet,
+    change_loss,
+    train_change_aware,
+)
+from chisel.depth.checkpoint import CheckpointError, load_checkpoint
+from chisel.depth.prior_data import StepSequenceRef, build_prior_set
+from chisel.depth_source import estimate_depth, wants_prior
+from chisel.io.sequence import Frame, SequenceWriter
+from chisel.updater import (
+    BuildConfig,
+    ChiselUpdater,
+    ModelRenderer,
+    UpdateConfig,
+    build_preop_model,
+    update_step,
+)
+
+H, W = 32, 40
+TINY = ChangeNetConfig(widths=(8, 12), input_scale=1.0)
+
+
+def wall_scene(rng: np.random.Generator, window: bool) -> tuple[np.ndarray, ...]:
+    """A tilted textured wall (the prior) and, optionally, a window through it onto a
+    farther, darker wall: returns (rgb uint8, prior_mm, target_mm, window mask)."""
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+    z0 = rng.uniform(10.0, 25.0)
+    prior = (
+        z0 + rng.uniform(-0.05, 0.05) * (xx - W / 2) + rng.uniform(-0.05, 0.05) * (yy - H / 2)
+    ).astype(np.float32)
+    target = prior.copy()
+    win = np.zeros((H, W), bool)
+    if window:
+        h, w = rng.integers(8, 16), rng.integers(8, 18)
+        y, x = rng.integers(0, H - h), rng.integers(0, W - w)
+        win[y : y + h, x : x + w] = True
+        target[win] += rng.uniform(4.0, 8.0)
+    phase = rng.uniform(0, 2 * np.pi)
+    texture = 0.5 + 0.2 * np.sin(0.7 * xx + phase) * np.cos(0.5 * yy)
+    shade = (z0 / target) ** 2  # an endoscope's light falls off with distance
+    gray = np.clip(texture * shade, 0.0, 1.0)
+    rgb = (np.stack([gray, 0.6 * gray, 0.5 * gray], axis=-1) * 255).astype(np.uint8)
+    return rgb, prior, target, win
+
+
+def wall_pairs(n: int, seed: int) -> PriorSet:
+    rng = np.random.default_rng(seed)
+    rows = [wall_scene(rng, window=i % 4 != 0) for i in range(n)]
+    return PriorSet(
+        rgb=torch.from_numpy(np.stack([r[0] for r in rows])),
+        prior_mm=torch.from_numpy(np.stack([r[1] for r in rows])),
+        target_mm=torch.from_numpy(np.stack([r[2] for r in rows])),
+        changed=torch.from_numpy(np.stack([r[3] for r in rows])),
+        sources=[f"wall#{i}" for i in range(n)],
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_trained() -> ChangeNet:
+    cfg = ChangeTrainConfig(steps=150, batch_size=8, lr=1e-2, seed=0, num_threads=1, eval_every=150)
+    return train_change_aware(wall_pairs(64, seed=1), cfg, TINY).net
+
+
+def test_untrained_network_returns_the_render_exactly() -> None:
+    pairs = wall_pairs(2, seed=3)
+    prior = pairs.prior_mm.clone()
+    prior[0, :3] = float("nan")
+    depth, p = ChangeAwarePredictor(ChangeNet(TINY)).eval()(pairs.rgb, prior)
+    assert torch.equal(torch.isnan(depth), torch.isnan(prior))
+    ok = torch.isfinite(prior)
+    assert torch.equal(depth[ok], prior[ok])
+    assert torch.allclose(p, torch.full_like(p, 0.5))
+
+
+def test_no_change_output_equals_the_render(tiny_trained: ChangeNet) -> None:
+    rng = np.random.default_rng(11)
+    predictor = ChangeAwarePredictor(tiny_trained).eval()
+    for _ in range(4):
+        rgb, prior, _, _ = wall_scene(rng, window=False)
+        depth, _ = predictor(torch.from_numpy(rgb)[None], torch.from_numpy(prior)[None])
+        rel = np.abs(depth[0].detach().numpy() - prior) / prior
+        assert np.median(rel) < 0.01 and np.percentile(rel, 90) < 0.03
+
+
+def test_known_window_comes_out_deeper(tiny_trained: ChangeNet) -> None:
+    rng = np.random.default_rng(12)
+    predictor = ChangeAwarePredictor(tiny_trained).eval()
+    for _ in range(4):
+        rgb, prior, target, win = wall_scene(rng, window=True)
+        depth, p = predictor(torch.from_numpy(rgb)[None], torch.from_numpy(prior)[None])
+        d, p = depth[0].detach().numpy(), p[0].detach().numpy()
+        gap = float(np.median(target[win] - prior[win]))
+        # Inside the window (away from its edge) most of the gap is found ...
+        inner = (
+            win
+            & np.roll(win, 2, 0)
+            & np.roll(win, -2, 0)
+            & np.roll(win, 2, 1)
+            & np.roll(win, -2, 1)
+        )
+        assert np.median(d[inner] - prior[inner]) > 0.5 * gap
+        # ... and far from it the wall stays where the render says.
+        outside = (
+            ~win
+            & ~np.roll(win, 3, 0)
+            & ~np.roll(win, -3, 0)
+            & ~np.roll(win, 3, 1)
+            & ~np.roll(win, -3, 1)
+        )
+        assert np.median(np.abs(d[outside] - prior[outside])) < 0.5
+        assert p[inner].mean() > p[outside].mean() + 0.3
+
+
+def test_a_few_training_steps_lower_the_loss() -> None:
+    pairs = wall_pairs(16, seed=5)
+    cfg = ChangeTrainConfig(steps=30, batch_size=8, lr=1e-2, seed=0, num_threads=1, flips=False,
+                            photometric=0.0)  # fmt: skip
+
+    def loss_of(net: ChangeNet) -> float:
+        pred = ChangeAwarePredictor(net).eval()
+        with torch.no_grad():
+            r, c = pred.raw(pairs.rgb, pairs.prior_mm)
+        return float(change_loss(r, c, pairs.prior_mm, pairs.target_mm, pairs.changed, cfg)[0])
+
+    torch.manual_seed(0)
+    before = loss_of(ChangeNet(TINY))
+    after = loss_of(train_change_aware(pairs, cfg, TINY).net)
+    assert after < 0.7 * before
+
+
+def test_training_is_seeded() -> None:
+    pairs = wall_pairs(8, seed=6)
+    cfg = ChangeTrainConfig(steps=4, batch_size=4, seed=3, num_threads=1)
+    a = train_change_aware(pairs, cfg, TINY).net.state_dict()
+    b = train_change_aware(pairs, cfg, TINY).net.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_checkpoint_round_trip_and_torchscript(tmp_path: Path) -> None:
+    net = ChangeNet(TINY)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.01 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    ck = save_change_checkpoint(tmp_path / "ca.pt", net, {"command": "test"})
+    sidecar = json.loads((tmp_path / "ca.json").read_text())
+    assert sidecar["kind"] == "change-aware" and sidecar["info"]["command"] == "test"
+    loaded, info = load_change_checkpoint(ck)
+    assert info["command"] == "test"
+    pairs = wall_pairs(1, seed=2)
+    ref, _ = ChangeAwarePredictor(net).eval()(pairs.rgb, pairs.prior_mm)
+    ts = export_change_aware(ChangeAwarePredictor(loaded), tmp_path / "ca_ts.pt")
+    for source in (load_change_aware_source(ck), load_change_aware_source(ts)):
+        frame = Frame(0, np.eye(4), rgb=pairs.rgb[0].numpy())
+        out = source(frame, prior_mm=pairs.prior_mm[0].numpy())
+        assert np.allclose(out, ref[0].detach().numpy(), atol=1e-4)
+        assert source.is_metric and wants_prior(source)
+
+
+def test_kind_mismatch_is_refused_naming_both(tmp_path: Path) -> None:
+    mono = save_checkpoint(
+        tmp_path / "mono.pt", DepthNet(DepthNetConfig(widths=(4, 8), blocks=(0, 0)))
+    )
+    change = save_change_checkpoint(tmp_path / "change.pt", ChangeNet(TINY))
+    for load, path in (
+        (load_change_checkpoint, mono),
+        (load_change_aware_source, mono),
+        (load_checkpoint, change),
+    ):
+        with pytest.raises(CheckpointError, match="monocular") as err:
+            load(path)
+        assert "change-aware" in str(err.value) and str(path) in str(err.value)
+    ts = export_model(
+        DepthPredictor(DepthNet(DepthNetConfig(widths=(4, 8), blocks=(0, 0)))), tmp_path / "m.pt"
+    )
+    with pytest.raises(CheckpointError, match="'monocular' TorchScript .*'change-aware'"):
+        load_change_aware_source(ts)
+
+
+def test_prior_of_another_size_and_missing_prior_are_refused() -> None:
+    source = ChangeAwareDepthSource(ChangeAwarePredictor(ChangeNet(TINY)))
+    frame = Frame(3, np.eye(4), rgb=np.zeros((H, W, 3), np.uint8))
+    with pytest.raises(InvalidInputError, match=r"prior render is 20x16 but the frame is 40x32"):
+        source(frame, prior_mm=np.full((16, 20), 10.0, np.float32))
+    with pytest.raises(InvalidInputError, match="needs the model's render"):
+        source(frame)
+    with pytest.raises(InvalidInputError, match="needs the model's render"):
+        estimate_depth(source, frame, None)
+
+
+def _plane(z_mm: float) -> trimesh.Trimesh:
+    v = np.array([[-50, -50, z_mm], [50, -50, z_mm], [50, 50, z_mm], [-50, 50, z_mm]], float)
+    return trimesh.Trimesh(v, np.array([[0, 1, 2], [0, 2, 3]]), process=False)
+
+
+def test_prior_pairs_label_removed_tissue_not_tracking_error(tmp_path: Path) -> None:
+    """Step 1 removes the wall at z = 20 (the next surface is at z = 26); tracking is off by
+    0.3 mm along z. The prior is the step-0 wall at the tracked pose; the label marks the
+    change from the true pose only, so the preop sweep has none despite the tracking error."""
+    phantom = tmp_path / "phantoms" / "seed_1000"
+    (phantom / "meshes").mkdir(parents=True)
+    _plane(20.0).export(phantom / "meshes" / "step_00.ply")
+    _plane(26.0).export(phantom / "meshes" / "step_01.ply")
+    steps = [{"step": k, "mesh": f"meshes/step_0{k}.ply"} for k in (0, 1)]
+    (phantom / "phantom.json").write_text(json.dumps({"steps": steps}))
+    cam = Camera(W, H, np.array([[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]]))
+    true = np.eye(4)
+    tracked = np.eye(4)
+    tracked[2, 3] = 0.3
+    for step, z in ((0, 20.0), (1, 26.0)):
+        with SequenceWriter(tmp_path / f"step_{step}", cam) as w:
+            for i in range(2):
+                w.add(Frame(i, tracked, rgb=np.full((H, W, 3), 90, np.uint8),
+                            depth_mm=np.full((H, W), z, np.float32), T_world_from_cam_true=true))  # fmt: skip
+    refs = [StepSequenceRef(tmp_path / f"step_{k}", 1000, k, phantom) for k in (0, 1)]
+    pairs = build_prior_set(refs)
+    assert len(pairs) == 4
+    assert np.allclose(pairs.prior_mm.numpy(), 20.0 - 0.3, atol=1e-3)  # the tracked pose's render
+    assert not pairs.changed[:2].any() and pairs.changed[2:].all()
+    assert np.allclose(pairs.target_mm[2:].numpy(), 26.0)
+
+
+class _RecordingPrior:
+    """A metric depth source that wants the prior: returns the true depth, keeps the priors."""
+
+    is_metric = True
+    wants_prior = True
+
+    def __init__(self, truth: trimesh.Trimesh, camera: Camera) -> None:
+        self.rc = MeshRaycaster.from_trimesh(truth)
+        self.camera = camera
+        self.priors: dict[int, np.ndarray] = {}
+
+    def __call__(self, frame: Frame, prior_mm: np.ndarray) -> np.ndarray:
+        self.priors[frame.index] = prior_mm
+        return self.rc.render_depth(self.camera, frame.T_world_from_cam)
+
+
+def test_updater_hands_the_model_render_to_a_source_that_wants_it() -> None:
+    from test_updater_scenes import bitten_mesh, camera, frames, poses, preop_poses, tissue_mesh
+
+    tissue = tissue_mesh()
+    cam = camera(48, 40)
+    model = build_preop_model(tissue, cam, preop_poses(12, seed=1), BuildConfig(voxel_size_mm=1.0))
+    P = poses(3, seed=2)
+    fr = frames(bitten_mesh(tissue), cam, P)
+    renderer = ModelRenderer(model)
+    expected = [renderer.render(cam, T) for T in P]
+    for register in (True, False):  # batch, with and without registration
+        src = _RecordingPrior(bitten_mesh(tissue), cam)
+        update_step(model, cam, fr, src, UpdateConfig(register=register))
+        assert sorted(src.priors) == [0, 1, 2]
+        for i, R in enumerate(expected):
+            assert np.allclose(src.priors[i], R, equal_nan=True)
+    src = _RecordingPrior(bitten_mesh(tissue), cam)  # streaming, one frame at a time
+    upd = ChiselUpdater(model, cam, src, UpdateConfig(register=False))
+    upd.begin_step()
+    upd.process(fr[1])
+    assert np.allclose(src.priors[1], expected[1], equal_nan=True)
