@@ -115,6 +115,24 @@ def texture_volume(box_mm: np.ndarray, cfg: AppearanceConfig, seed: int) -> Text
     return TextureVolume((levels / TEXEL_LEVELS).astype(np.float32), box)
 
 
+def cut_texture_volume(box_mm: np.ndarray, cfg: SimConfig, seed: int) -> TextureVolume:
+    """The base colour of cut faces (``cfg.cut``): raw tissue with blood blotches, baked
+    like :func:`texture_volume` over the same box (wide, dense "vessels" of blood colour
+    make the blotches); its own seed stream, so the mucosa's texture is unchanged."""
+    c = cfg.cut
+    look = dataclasses.replace(
+        cfg.appearance,
+        albedo_rgb=c.albedo_rgb,
+        color_variation=0.3,
+        variation_scale_mm=2.0,
+        vessel_strength=c.blood_strength,
+        vessel_scale_mm=c.blood_scale_mm,
+        vessel_width=0.45,
+        vessel_rgb=c.blood_rgb,
+    )
+    return texture_volume(box_mm, look, int(seed) + 104_729)
+
+
 def randomize(cfg: SimConfig, seed: int) -> SimConfig:
     """Copy of ``cfg`` with appearance, light and sensor drawn from ``cfg.randomization``.
 
@@ -140,4 +158,29 @@ def randomize(cfg: SimConfig, seed: int) -> SimConfig:
     imaging = dataclasses.replace(
         cfg.imaging, exposure=u(r.exposure), shot_noise=u(r.shot_noise), read_noise=u(r.read_noise)
     )
-    return dataclasses.replace(cfg, appearance=appearance, light=light, imaging=imaging)
+
+    # Drawn after the earlier values so that those stay what they were before these ranges
+    # existed. A [0, 0] range (the default) keeps the section's own value.
+    def u_or(rr: tuple[float, float], own: float) -> float:
+        x = u(rr)
+        return own if rr[1] <= 0 else x
+
+    tools = dataclasses.replace(cfg.tools, fraction=u_or(r.tools_fraction, cfg.tools.fraction))
+    smoke = dataclasses.replace(
+        cfg.smoke, density_per_mm=u_or(r.smoke_density_per_mm, cfg.smoke.density_per_mm)
+    )
+    blur = dataclasses.replace(cfg.blur, shutter=u_or(r.blur_shutter, cfg.blur.shutter))
+    lens = dataclasses.replace(
+        cfg.lens,
+        smear_probability=u_or(r.lens_smear_probability, cfg.lens.smear_probability),
+    )
+    return dataclasses.replace(
+        cfg,
+        appearance=appearance,
+        light=light,
+        imaging=imaging,
+        tools=tools,
+        smoke=smoke,
+        blur=blur,
+        lens=lens,
+    )

@@ -33,6 +33,9 @@ Writes OUT atomically:
   OUT/eval/step_NN/      fixed evaluation poses on step NN's mesh (exact poses)
 Each sequence: sequence.json, poses.txt (tracked), poses_true.txt, rgb/*.png,
 depth/*.npy (z-depth mm, 0 = invalid), mask/*.png (valid depth), camera_mask.png (field stop).
+With --tools, intraoperative sequences add depth_visible/*.npy (tool included),
+tool_mask/*.png (255 = instrument) and tools.json; depth/ is the tissue behind the tool and
+mask/ leaves the tool out.
 """
 
 
@@ -53,6 +56,13 @@ def _add_render_options(p: argparse.ArgumentParser) -> None:
         help="tracking jitter, std per axis in degrees (default 0.1)",
     )
     p.add_argument("--depth-only", action="store_true", help="render depth and masks only (no RGB)")
+    p.add_argument(
+        "--tools",
+        action="store_true",
+        help="instruments in view in the intraoperative sequences (config tools.*): adds "
+        "depth_visible/ (z-depth mm with the tool) and tool_mask/ (255 = tool) per sequence; "
+        "depth/ stays the tissue's depth and mask/ excludes the tool",
+    )
     p.add_argument(
         "--variant",
         choices=["auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"],
@@ -80,6 +90,8 @@ def _config_from_args(args: argparse.Namespace) -> SimConfig:
     )
     if args.depth_only:
         cfg = replace_in(cfg, depth_only=True)
+    if args.tools:
+        cfg = replace_in(cfg, **{"tools.enabled": True})
     return cfg
 
 

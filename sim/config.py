@@ -1,7 +1,8 @@
 """Simulator configuration: small frozen dataclasses, loadable from YAML.
 
 A YAML file mirrors :class:`SimConfig`: one mapping per section (``camera``, ``light``,
-``appearance``, ``imaging``, ``randomization``, ``tracking``, ``paths``) plus ``seed``.
+``appearance``, ``cut``, ``imaging``, ``randomization``, ``tracking``, ``paths``, ``tools``,
+``smoke``, ``blur``, ``lens``) plus ``seed``.
 Missing keys keep their defaults; unknown keys are refused (:class:`ConfigError`), so a
 typo never passes silently. ``config/sim_default.yaml`` lists every key with its default.
 """
@@ -24,6 +25,7 @@ from chisel.io.undistort import check_lens_model
 from sim.errors import ConfigError
 
 Range = tuple[float, float]
+ToolKind = Literal["forceps", "suction", "microdebrider"]
 
 MAX_IMAGE_SIDE = 8192
 """Largest image width/height in pixels: beyond it the per-pixel ray arrays exhaust memory."""
@@ -31,6 +33,8 @@ MAX_FRAMES = 100_000
 """Largest number of frames (or evaluation poses) of one sequence."""
 MIN_CLEARANCE_MM = 0.1
 """Smallest camera-to-tissue clearance of the paths, mm."""
+MAX_SMOKE_DENSITY_PER_MM = 1.0
+"""Densest smoke accepted, 1/mm: beyond it a 1 mm layer hides the tissue."""
 
 
 def _check(cond: bool, name: str, problem: str) -> None:
@@ -254,6 +258,42 @@ class AppearanceConfig:
 
 
 @dataclass(frozen=True)
+class CutConfig:
+    """Faces a cut created (the phantom's ``cut_faces`` labels): raw, bleeding tissue.
+
+    Rendered with a second colour volume baked like the mucosa's (same BSDF lobes, same
+    roughness and specular: wet tissue), whose base colour is raw tissue with blood
+    blotches. Phantoms without labels, and step 0, render as before."""
+
+    enabled: bool = True
+    """Give the labelled cut faces the cut material (false: mucosa everywhere)."""
+    albedo_rgb: tuple[float, float, float] = (0.62, 0.12, 0.09)
+    """Mean colour of raw tissue (cut mucosa, bone), linear RGB in [0, 1]."""
+    blood_rgb: tuple[float, float, float] = (0.22, 0.01, 0.008)
+    """Colour of blood on the cut, linear RGB in [0, 1]."""
+    blood_strength: float = 0.75
+    """Blend weight of blood at the blotches' centre (0 = no blood)."""
+    blood_scale_mm: float = 1.5
+    """Spacing of the blood blotches, mm."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, error=ConfigError, section="cut")
+        for name in ("albedo_rgb", "blood_rgb"):
+            v = getattr(self, name)
+            _check(
+                all(0.0 <= x <= 1.0 for x in v),
+                f"cut.{name}",
+                f"expected 3 values in [0, 1], got {list(v)}",
+            )
+        _check(
+            0.0 <= self.blood_strength <= 1.0,
+            "cut.blood_strength",
+            f"must be in [0, 1], got {self.blood_strength}",
+        )
+        _check(self.blood_scale_mm > 0, "cut.blood_scale_mm", "must be > 0 mm")
+
+
+@dataclass(frozen=True)
 class ImagingConfig:
     """Sensor model applied after rendering: exposure, noise, gamma; and the sampling budget."""
 
@@ -291,7 +331,10 @@ class ImagingConfig:
 
 @dataclass(frozen=True)
 class RandomizationConfig:
-    """Ranges sampled once per render for training data (``sim dataset``); each a [min, max]."""
+    """Ranges sampled once per render for training data (``sim dataset``); each a [min, max].
+
+    The effect ranges (``tools_fraction``, ``smoke_*``, ``blur_*``, ``lens_*``) default to
+    [0, 0], which keeps the section's own value (off unless configured there)."""
 
     enabled: bool = False
     """Draw appearance, light and sensor once per render from these ranges with the master
@@ -314,6 +357,15 @@ class RandomizationConfig:
     """Shot-noise scale."""
     read_noise: Range = (0.0005, 0.006)
     """Read-noise std."""
+    tools_fraction: Range = (0.0, 0.0)
+    """Fraction of intraoperative frames in a tool episode (``tools.fraction``; drawn only
+    where ``tools.enabled``)."""
+    smoke_density_per_mm: Range = (0.0, 0.0)
+    """Cautery smoke extinction, 1/mm (``smoke.density_per_mm``; 0 = off)."""
+    blur_shutter: Range = (0.0, 0.0)
+    """Motion-blur shutter fraction (``blur.shutter``; 0 = off)."""
+    lens_smear_probability: Range = (0.0, 0.0)
+    """Chance per frame that a lens smear starts (``lens.smear_probability``; 0 = off)."""
 
     def __post_init__(self) -> None:
         check_fields(self, error=ConfigError, section="randomization")
@@ -327,6 +379,10 @@ class RandomizationConfig:
             "exposure": (0.01, 100.0),
             "shot_noise": (0.0, 1.0),
             "read_noise": (0.0, 1.0),
+            "tools_fraction": (0.0, 1.0),
+            "smoke_density_per_mm": (0.0, MAX_SMOKE_DENSITY_PER_MM),
+            "blur_shutter": (0.0, 1.0),
+            "lens_smear_probability": (0.0, 1.0),
         }
         for name, (lo, hi) in bounds.items():
             _check_range(f"randomization.{name}", getattr(self, name), lo, hi)
@@ -435,6 +491,192 @@ class PathConfig:
 
 
 @dataclass(frozen=True)
+class ToolsConfig:
+    """Rigid instruments in view (``sim/tools.py``): forceps, suction cannula, microdebrider.
+
+    In intraoperative sequences only (the preoperative sweep and the evaluation poses stay
+    tool-free). A tool episode holds one instrument beside the scope (both pass the
+    nostril) on an axis that enters the view from its edge; the tool advances along that
+    axis into view, works, and withdraws. Every frame's tool keeps ``clearance_mm`` from tissue and from the
+    scope (``sim.collision`` distances), else the episode is redrawn."""
+
+    enabled: bool = False
+    """Put instruments in view (``sim render --tools``)."""
+    fraction: float = 0.3
+    """Fraction of each intraoperative sequence's frames that lie in a tool episode."""
+    kinds: tuple[ToolKind, ...] = ("forceps", "suction", "microdebrider")
+    """Instruments drawn from, one per episode."""
+    seed: int = 0
+    """Mixed with each sequence's seed for the tool draws (same seed, same tools)."""
+    episode_frames: tuple[int, int] = (12, 30)
+    """[min, max] frames of one tool episode."""
+    tip_depth_mm: Range = (5.0, 12.0)
+    """z-depth of the tool tip in the camera when fully in, mm (kept in front of tissue)."""
+    travel_mm: float = 14.0
+    """How far the tool advances along its axis while entering (and withdrawing), mm."""
+    clearance_mm: float = 0.3
+    """Smallest distance of any point of the tool from tissue, mm."""
+    shaft_length_mm: float = 20.0
+    """Modelled length of the instrument from its tip, mm (the rest is behind the scope)."""
+    forceps_jaw_width_mm: Range = (3.0, 5.0)
+    """Through-cutting/Blakesley forceps: jaw width, mm."""
+    forceps_shaft_mm: Range = (2.0, 3.0)
+    """Forceps shaft diameter, mm."""
+    suction_diameter_mm: Range = (2.0, 4.0)
+    """Suction cannula outer diameter, mm."""
+    microdebrider_diameter_mm: Range = (3.0, 4.0)
+    """Microdebrider tip diameter, mm."""
+    material: str = "Cr"
+    """Mitsuba ``roughconductor`` material (complex IOR) of the metal."""
+    roughness: float = 0.2
+    """GGX alpha of the metal (low = sharp highlights)."""
+    diffuse: float = 0.3
+    """Weight of a grey diffuse lobe blended with the metal (brushed steel; 0 = mirror-like)."""
+    model_file: str | None = None
+    """Optional closed tool mesh (PLY/STL/OBJ, mm; tip at the origin, shaft along -z)
+    used instead of the built-in kinds."""
+    max_tries: int = 200
+    """Attempts at drawing a tool episode that keeps clear of tissue before giving up."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, error=ConfigError, section="tools")
+        _check(
+            0.0 <= self.fraction <= 1.0, "tools.fraction", f"must be in [0, 1], got {self.fraction}"
+        )
+        _check(len(self.kinds) >= 1, "tools.kinds", "name at least one instrument")
+        _check(self.seed >= 0, "tools.seed", f"must be >= 0, got {self.seed}")
+        a, b = self.episode_frames
+        _check(1 <= a <= b, "tools.episode_frames", f"expected 1 <= min <= max, got {[a, b]}")
+        _check_range("tools.tip_depth_mm", self.tip_depth_mm, 1.0, 100.0)
+        _check(
+            0.0 < self.travel_mm <= 100.0,
+            "tools.travel_mm",
+            f"must be in (0, 100] mm, got {self.travel_mm}",
+        )
+        _check(
+            0.0 <= self.clearance_mm <= 5.0,
+            "tools.clearance_mm",
+            f"must be in [0, 5] mm, got {self.clearance_mm}",
+        )
+        _check(
+            5.0 <= self.shaft_length_mm <= 300.0,
+            "tools.shaft_length_mm",
+            f"must be in [5, 300] mm, got {self.shaft_length_mm}",
+        )
+        _check_range("tools.forceps_jaw_width_mm", self.forceps_jaw_width_mm, 1.0, 8.0)
+        _check_range("tools.forceps_shaft_mm", self.forceps_shaft_mm, 1.0, 6.0)
+        _check_range("tools.suction_diameter_mm", self.suction_diameter_mm, 1.0, 6.0)
+        _check_range("tools.microdebrider_diameter_mm", self.microdebrider_diameter_mm, 1.0, 6.0)
+        _check(
+            0.01 <= self.roughness <= 1.0,
+            "tools.roughness",
+            f"must be in [0.01, 1], got {self.roughness}",
+        )
+        _check(
+            0.0 <= self.diffuse <= 1.0, "tools.diffuse", f"must be in [0, 1], got {self.diffuse}"
+        )
+        _check(self.max_tries >= 1, "tools.max_tries", f"must be >= 1, got {self.max_tries}")
+
+
+@dataclass(frozen=True)
+class SmokeConfig:
+    """Cautery smoke: a screen-space participating-medium approximation (``sim/effects.py``).
+
+    Homogeneous extinction ``density_per_mm`` modulated by seeded smooth noise over the
+    image (patches); light crosses the smoke twice (tip -> tissue -> lens, the light sits
+    at the lens), so the tissue is attenuated by ``exp(-2 sigma z)`` and a veil of
+    ``albedo`` x the frame's mean radiance fills in ``1 - exp(-2 sigma z)``."""
+
+    density_per_mm: float = 0.0
+    """Extinction coefficient, 1/mm (0 = off; 0.05 = light haze, 0.3 = dense smoke)."""
+    albedo: float = 0.9
+    """Veil brightness relative to the frame's mean tissue radiance."""
+    patchiness: float = 0.6
+    """Relative spatial variation of the density (0 = uniform)."""
+    scale_frac: float = 0.3
+    """Feature size of the smoke patches, fraction of the image width."""
+    color_rgb: tuple[float, float, float] = (0.95, 0.93, 0.9)
+    """Tint of the scattered light, linear RGB."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, error=ConfigError, section="smoke")
+        _check(
+            0.0 <= self.density_per_mm <= MAX_SMOKE_DENSITY_PER_MM,
+            "smoke.density_per_mm",
+            f"must be in [0, {MAX_SMOKE_DENSITY_PER_MM}] per mm, got {self.density_per_mm}",
+        )
+        _check(0.0 <= self.albedo <= 4.0, "smoke.albedo", f"must be in [0, 4], got {self.albedo}")
+        _check(
+            0.0 <= self.patchiness <= 1.0,
+            "smoke.patchiness",
+            f"must be in [0, 1], got {self.patchiness}",
+        )
+        _check(
+            0.01 <= self.scale_frac <= 4.0,
+            "smoke.scale_frac",
+            f"must be in [0.01, 4], got {self.scale_frac}",
+        )
+        _check(
+            all(0.0 <= x <= 1.0 for x in self.color_rgb),
+            "smoke.color_rgb",
+            f"expected 3 values in [0, 1], got {list(self.color_rgb)}",
+        )
+
+
+@dataclass(frozen=True)
+class BlurConfig:
+    """Motion blur from the camera's own motion: the average of sub-frame renders."""
+
+    shutter: float = 0.0
+    """Fraction of the motion from the previous frame's pose to this one that the exposure
+    integrates (0 = off, 1 = the whole interval)."""
+    subframes: int = 4
+    """Sub-frame renders averaged when ``shutter`` > 0 (each with the full ``spp``)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, error=ConfigError, section="blur")
+        _check(0.0 <= self.shutter <= 1.0, "blur.shutter", f"must be in [0, 1], got {self.shutter}")
+        _check(
+            2 <= self.subframes <= 64, "blur.subframes", f"must be in [2, 64], got {self.subframes}"
+        )
+
+
+@dataclass(frozen=True)
+class LensConfig:
+    """Occasional lens smear (blood or mucus on the distal window): a soft blurred veil."""
+
+    smear_probability: float = 0.0
+    """Chance per frame that a smear starts (0 = off); it stays ``smear_frames`` frames."""
+    smear_strength: float = 0.7
+    """Opacity of the smear at its centre (0 = off)."""
+    smear_frames: int = 20
+    """Frames a smear stays before the surgeon cleans the lens."""
+    smear_blur_px: float = 6.0
+    """Blur radius (Gaussian sigma) under the smear, in pixels of a 320-pixel-wide image."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, error=ConfigError, section="lens")
+        _check(
+            0.0 <= self.smear_probability <= 1.0,
+            "lens.smear_probability",
+            f"must be in [0, 1], got {self.smear_probability}",
+        )
+        _check(
+            0.0 <= self.smear_strength <= 1.0,
+            "lens.smear_strength",
+            f"must be in [0, 1], got {self.smear_strength}",
+        )
+        _check(
+            self.smear_frames >= 1, "lens.smear_frames", f"must be >= 1, got {self.smear_frames}"
+        )
+        _check(
+            0.0 < self.smear_blur_px <= 50.0,
+            "lens.smear_blur_px",
+            f"must be in (0, 50], got {self.smear_blur_px}",
+        )
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """Everything the renderer needs besides the phantom; ``sim render --config`` loads it."""
 
@@ -444,6 +686,8 @@ class SimConfig:
     """Tip light."""
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     """Tissue appearance."""
+    cut: CutConfig = field(default_factory=CutConfig)
+    """Appearance of the faces a cut created."""
     imaging: ImagingConfig = field(default_factory=ImagingConfig)
     """Sensor model and sampling."""
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
@@ -452,6 +696,14 @@ class SimConfig:
     """Tracked-pose noise."""
     paths: PathConfig = field(default_factory=PathConfig)
     """Camera paths."""
+    tools: ToolsConfig = field(default_factory=ToolsConfig)
+    """Instruments in view."""
+    smoke: SmokeConfig = field(default_factory=SmokeConfig)
+    """Cautery smoke."""
+    blur: BlurConfig = field(default_factory=BlurConfig)
+    """Motion blur."""
+    lens: LensConfig = field(default_factory=LensConfig)
+    """Lens smear."""
     seed: int = 0
     """Master seed: paths, texture, tracking noise and sensor noise derive from it."""
     depth_only: bool = False

@@ -10,6 +10,11 @@ Layout written (atomically: the whole ``OUT`` appears complete or not at all)::
 Each sequence folder follows :mod:`chisel.io.sequence` (``poses.txt`` = tracked poses,
 ``poses_true.txt`` = true poses, ``depth/``, ``rgb/``, ``mask/`` = valid depth,
 ``camera_mask.png`` = field stop). Evaluation sequences store exact poses in both files.
+With instruments (``tools.enabled``) an intraoperative sequence also holds
+``depth_visible/NNNNNN.npy`` (z-depth of the visible scene, tool included, 0 = none),
+``tool_mask/NNNNNN.png`` (255 = the pixel's first hit is an instrument) and
+``tools.json`` (per frame: instrument and ``T_world_from_tool``); ``depth/`` stays the
+tissue's depth (the tool is not in it) and ``mask/`` excludes the tool pixels.
 """
 
 from __future__ import annotations
@@ -28,13 +33,17 @@ from tqdm import tqdm
 
 from chisel.core.atomic import atomic_dir, check_output_outside
 from chisel.core.mitsuba_variant import choose_variant
-from chisel.io.sequence import Frame, SequenceWriter
-from sim.appearance import TextureVolume, randomize, texture_volume
+from chisel.io.manifest import named_path, read_json_manifest
+from chisel.io.sequence import Frame, SequenceWriter, depth_to_disk, imwrite
+from sim.appearance import TextureVolume, cut_texture_volume, randomize, texture_volume
 from sim.collision import TissueDistance
 from sim.config import SimConfig, config_to_dict
+from sim.effects import FrameEffects, smear_mask, smear_schedule
+from sim.errors import PhantomError
 from sim.paths import PathTarget, check_clearance, eval_poses, intraop_path, preop_sweep
 from sim.phantom import Phantom, load_mesh, load_phantom
 from sim.render import MeshRenderer
+from sim.tools import ToolSet, ToolTrack, plan_tool_track, tool_set
 from sim.tracking import tracked_poses
 
 log = logging.getLogger(__name__)
@@ -68,6 +77,8 @@ class PlannedSequence:
     """(N, 4, 4) float64 tracked ``T_world_from_cam`` written to ``poses.txt``, mm."""
     seed: int
     """Seed of the rendering noise of this sequence."""
+    tools: ToolTrack | None = None
+    """Instruments per frame (intraoperative sequences with ``tools.enabled``), else None."""
 
 
 def path_target(phantom: Phantom) -> PathTarget:
@@ -82,10 +93,16 @@ def path_target(phantom: Phantom) -> PathTarget:
 
 
 def plan_sequences(
-    phantom: Phantom, meshes: Seq[trimesh.Trimesh], cfg: SimConfig, include_eval: bool = True
+    phantom: Phantom,
+    meshes: Seq[trimesh.Trimesh],
+    cfg: SimConfig,
+    include_eval: bool = True,
+    tools: ToolSet | None = None,
 ) -> list[PlannedSequence]:
     """All camera paths of a render, checked against every mesh they are rendered on.
 
+    With ``tools``, each intraoperative sequence also gets its instrument track
+    (:func:`sim.tools.plan_tool_track`, clear of that step's tissue).
     Raises :class:`~sim.errors.PathError` (or ``PathInTissueError``) before anything is
     rendered if a path cannot be built or collides.
     """
@@ -116,6 +133,16 @@ def plan_sequences(
             target, tissue, pc.intraop_frames, sequence_seed(cfg.seed, "intraop", k), pc
         )
         add(f"step_{k:02d}", "intraop", k, poses, exact=False)
+        if tools is not None:
+            track = plan_tool_track(
+                tools,
+                cfg.camera.camera(),
+                poses,
+                tissue,
+                cfg.tools,
+                sequence_seed(cfg.seed, "intraop", k),
+            )
+            planned[-1] = dataclasses.replace(planned[-1], tools=track)
     if evals is not None:
         for k in range(len(meshes)):
             tissue = tissue0 if k == 0 else TissueDistance(meshes[k])
@@ -126,6 +153,24 @@ def plan_sequences(
     return planned
 
 
+def frame_effects(
+    cfg: SimConfig, seq: PlannedSequence, index: int, smear_seed: int
+) -> FrameEffects:
+    """The smoke, blur and smear of frame ``index`` of ``seq`` (see :mod:`sim.effects`)."""
+    shape = (cfg.camera.height, cfg.camera.width)
+    smear = None
+    if smear_seed >= 0:
+        smear = smear_mask(shape, cfg.lens.smear_strength, smear_seed)
+    return FrameEffects(
+        smoke=cfg.smoke,
+        smoke_seed=int(np.random.default_rng([seq.seed, index, 59]).integers(2**31)),
+        blur=cfg.blur,
+        T_prev=seq.true_poses[index - 1] if index > 0 else None,
+        smear=smear,
+        smear_blur_px=cfg.lens.smear_blur_px * cfg.camera.width / 320.0,
+    )
+
+
 def render_sequence(
     renderer: MeshRenderer,
     seq: PlannedSequence,
@@ -133,10 +178,67 @@ def render_sequence(
     meta: dict[str, Any],
     progress: bool = True,
 ) -> Path:
-    """Render one planned sequence with ``renderer`` into ``out_dir`` (atomically)."""
+    """Render one planned sequence with ``renderer`` into ``out_dir`` (atomically).
+
+    Instruments and effects apply to intraoperative sequences only (the preoperative
+    sweep and the evaluation poses stay clean ground truth for the model and the score).
+    """
     cam = renderer.camera
     n = len(seq.true_poses)
+    cfg = renderer.cfg
+    effects_on = seq.kind == "intraop" and not renderer.depth_only
+    smears = smear_schedule(n, cfg.lens, seq.seed) if effects_on else np.full(n, -1)
+    track = seq.tools
+    extras = out_dir.parent / f".{out_dir.name}.tools.tmp" if track is not None else None
+    if extras is not None:
+        for sub in ("depth_visible", "tool_mask"):
+            (extras / sub).mkdir(parents=True, exist_ok=True)
     bar = tqdm(total=n, desc=f"render {seq.name}", unit="frame", disable=not progress, leave=False)
+    if track is not None:
+        with SequenceWriter(out_dir, cam, meta=meta, camera_mask=renderer.field_stop) as w:
+            for i in range(n):
+                tool = (int(track.kind[i]), track.T_world_from_tool[i])
+                fx = frame_effects(cfg, seq, i, int(smears[i])) if effects_on else None
+                f = renderer.render(
+                    seq.true_poses[i], index=i, seed=seq.seed, tool=tool, effects=fx
+                )
+                assert f.tool_mask is not None and f.depth_visible_mm is not None
+                name = f"{i:06d}"
+                np.save(extras / "depth_visible" / f"{name}.npy", depth_to_disk(f.depth_visible_mm))
+                imwrite(
+                    str(extras / "tool_mask" / f"{name}.png"),
+                    np.where(f.tool_mask, 255, 0).astype(np.uint8),
+                )
+                mask = f.valid & ~f.tool_mask
+                w.add(Frame(i, seq.tracked[i], f.rgb, f.depth_mm, mask, seq.true_poses[i]))
+                bar.update(1)
+        for sub in ("depth_visible", "tool_mask"):
+            (extras / sub).rename(out_dir / sub)
+        extras.rmdir()
+        (out_dir / "tools.json").write_text(
+            json.dumps(
+                {
+                    "kinds": list(renderer.tools.kinds) if renderer.tools else [],
+                    "sizes_mm": list(renderer.tools.sizes_mm) if renderer.tools else [],
+                    "frames": [
+                        {
+                            "index": i,
+                            "tool": renderer.tools.kinds[int(track.kind[i])]
+                            if track.kind[i] >= 0 and renderer.tools
+                            else None,
+                            "T_world_from_tool": track.T_world_from_tool[i].tolist()
+                            if track.kind[i] >= 0
+                            else None,
+                        }
+                        for i in range(n)
+                    ],
+                },
+                indent=1,
+            )
+            + "\n"
+        )
+        bar.close()
+        return out_dir
     with SequenceWriter(out_dir, cam, meta=meta, camera_mask=renderer.field_stop) as w:
         if renderer.depth_only:
             for start in range(0, n, DEPTH_BATCH):
@@ -149,7 +251,8 @@ def render_sequence(
                 bar.update(len(depths))
         else:
             for i in range(n):
-                f = renderer.render(seq.true_poses[i], index=i, seed=seq.seed)
+                fx = frame_effects(cfg, seq, i, int(smears[i])) if effects_on else None
+                f = renderer.render(seq.true_poses[i], index=i, seed=seq.seed, effects=fx)
                 w.add(Frame(i, seq.tracked[i], f.rgb, f.depth_mm, f.valid, seq.true_poses[i]))
                 bar.update(1)
     bar.close()
@@ -159,6 +262,35 @@ def render_sequence(
 def _texture_box(mesh: trimesh.Trimesh) -> np.ndarray:
     b = np.asarray(mesh.bounds, dtype=np.float64)
     return np.stack([b[0] - 1.0, b[1] + 1.0])
+
+
+def load_cut_faces(phantom: Phantom, step: int, n_faces: int) -> np.ndarray | None:
+    """(F,) bool cut-face labels of a step's mesh, from ``phantom.json``'s optional
+    ``steps[k].cut_faces`` (a uint8 ``.npy`` per face; ``docs/phantoms.md``), or None
+    when the phantom has none. A file that does not match the mesh raises
+    :class:`~sim.errors.PhantomError` naming it."""
+    manifest = phantom.path / "phantom.json"
+    data = read_json_manifest(manifest, PhantomError)
+    steps = data.get("steps")
+    if not isinstance(steps, list) or step >= len(steps) or not isinstance(steps[step], dict):
+        return None
+    rel = steps[step].get("cut_faces")
+    if rel is None:
+        return None
+    path = named_path(manifest, rel, f"steps[{step}].cut_faces", kind="file")
+    try:
+        labels = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise PhantomError(path, f"steps[{step}].cut_faces: not a .npy array: {exc}") from None
+    if labels.ndim != 1 or len(labels) != n_faces or labels.dtype.kind not in "biu":
+        raise PhantomError(
+            path,
+            f"steps[{step}].cut_faces: expected ({n_faces},) integer labels (one per face of "
+            f"{phantom.steps[step].mesh_path.name}), got {labels.shape} {labels.dtype}",
+        )
+    if np.any((labels != 0) & (labels != 1)):
+        raise PhantomError(path, f"steps[{step}].cut_faces: labels must be 0 or 1")
+    return labels.astype(bool)
 
 
 def drawn_config(cfg: SimConfig) -> SimConfig:
@@ -195,10 +327,17 @@ def render_phantom(
     phantom = load_phantom(phantom_dir, allow_outside=allow_outside_phantom)
     check_output_outside(out_dir, phantom.path, *{Path(s.mesh_path).parent for s in phantom.steps})
     meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
-    planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval)
+    cuts = [load_cut_faces(phantom, k, len(m.faces)) for k, m in enumerate(meshes)]
+    if not cfg.cut.enabled or cfg.depth_only:
+        cuts = [None] * len(meshes)
+    tools = tool_set(cfg.tools, cfg.seed) if cfg.tools.enabled else None
+    planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval, tools=tools)
     variant = choose_variant(cfg.variant)
     if texture is None and not cfg.depth_only:
         texture = texture_volume(_texture_box(meshes[0]), cfg.appearance, cfg.seed)
+    cut_texture = None
+    if any(c is not None and c.any() for c in cuts):
+        cut_texture = cut_texture_volume(_texture_box(meshes[0]), cfg, cfg.seed)
     sequences: dict[str, Any] = {"preop": "preop", "steps": {}, "eval": {}}
     for p in planned:
         if p.kind == "intraop":
@@ -226,7 +365,16 @@ def render_phantom(
             todo = [p for p in planned if p.step == k]
             if not todo:
                 continue
-            renderer = MeshRenderer(mesh, cfg, texture, depth_only=cfg.depth_only)
+            step_tools = tools if any(p.tools is not None for p in todo) else None
+            renderer = MeshRenderer(
+                mesh,
+                cfg,
+                texture,
+                depth_only=cfg.depth_only,
+                cut_faces=cuts[k],
+                cut_texture=cut_texture,
+                tools=step_tools,
+            )
             for p in todo:
                 meta = {
                     "source": "sim",
@@ -242,6 +390,8 @@ def render_phantom(
                     if p.kind == "eval"
                     else "tracked poses",
                     "tracking": config_to_dict(cfg)["tracking"] if p.kind != "eval" else None,
+                    "cut_faces": int(cuts[k].sum()) if cuts[k] is not None else 0,
+                    "tools": p.tools is not None,
                 }
                 render_sequence(renderer, p, tmp / p.name, meta, progress=progress)
             del renderer

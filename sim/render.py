@@ -29,6 +29,7 @@ from chisel.core.mitsuba_variant import load_mitsuba
 from chisel.core.raycast import jit_z_depth, unit_rays
 from sim.appearance import TextureVolume
 from sim.config import SimConfig
+from sim.effects import FrameEffects, apply_effects, blur_poses
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain
 from sim.mitsuba_camera import (
     RenderGrid,
@@ -39,6 +40,7 @@ from sim.mitsuba_camera import (
 )
 from sim.phantom import check_mesh
 from sim.spot_direct import SpotDirectIntegrator
+from sim.tools import ToolSet
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,12 @@ class RenderedFrame:
     """(H, W) bool, True where the depth is valid."""
     rgb: np.ndarray | None = None
     """(H, W, 3) uint8 RGB, None in depth-only mode."""
+    depth_visible_mm: np.ndarray | None = None
+    """(H, W) float32 z-depth in mm of the visible scene (instruments included), NaN on a
+    miss; None when the renderer has no instruments (then it equals ``depth_mm``)."""
+    tool_mask: np.ndarray | None = None
+    """(H, W) bool, True where the pixel centre's first hit is an instrument; None when the
+    renderer has no instruments."""
 
 
 def _frame_seed(seed: int, index: int) -> int:
@@ -69,6 +77,14 @@ class MeshRenderer:
     cfg : the simulator configuration (camera, light, appearance, imaging).
     texture : the baked colour volume; required unless ``depth_only``.
     depth_only : build a geometry-only scene (no BSDF texture, light or RGB).
+    cut_faces : optional (F,) bool per face of ``mesh``, True = a face a cut created; those
+        faces render with ``cut_texture`` as base colour (Mitsuba: a ``blendbsdf`` whose
+        weight is the ``face_cut`` mesh attribute; the fast integrator gathers the same
+        label). All False or None: one material, as before.
+    tools : optional instruments (one Mitsuba mesh each: ``roughconductor`` blended with
+        ``tools.diffuse`` of a grey ``diffuse``, brushed steel), placed per
+        frame with :meth:`place_tool`; frames then also return the visible depth and the
+        tool mask, and ``depth_mm`` stays the tissue's (a tissue-only scene traces it).
     """
 
     def __init__(
@@ -77,12 +93,29 @@ class MeshRenderer:
         cfg: SimConfig,
         texture: TextureVolume | None = None,
         depth_only: bool = False,
+        cut_faces: np.ndarray | None = None,
+        cut_texture: TextureVolume | None = None,
+        tools: ToolSet | None = None,
     ) -> None:
         check_mesh(mesh, "mesh")
         self.cfg = cfg
         self.depth_only = bool(depth_only)
         if not self.depth_only and texture is None:
             raise ValueError("MeshRenderer: a texture volume is required to render RGB")
+        cut = None
+        if cut_faces is not None and not self.depth_only:
+            cut = np.asarray(cut_faces).astype(bool).ravel()
+            if len(cut) != len(mesh.faces):
+                raise ValueError(
+                    f"MeshRenderer: {len(cut)} cut-face labels for a mesh of {len(mesh.faces)} faces"
+                )
+            if not cut.any():
+                cut = None
+            elif cut_texture is None:
+                raise ValueError("MeshRenderer: cut faces need a cut_texture")
+        self.cut_faces = cut
+        """(F,) bool cut-face labels in use, or None."""
+        self.tools = tools
         self.mi, self.variant = load_mitsuba(cfg.variant)
         mi = self.mi
         import drjit  # noqa: PLC0415 - only after mitsuba picked the variant
@@ -105,45 +138,60 @@ class MeshRenderer:
         props = mi.Properties()
         if not self.depth_only:
             assert texture is not None
-            box = texture.box_mm
-            to_world = make_transform(np.diag(box[1] - box[0]), box[0])
-            bsdf = mi.load_dict(
-                {
-                    "type": "principled",
-                    "base_color": {
-                        "type": "volume",
-                        "volume": {
-                            "type": "gridvolume",
-                            "grid": mi.VolumeGrid(
-                                np.ascontiguousarray(texture.rgb, dtype=np.float32)
-                            ),
-                            "to_world": mi.ScalarTransform4f(to_world),
-                        },
-                    },
-                    "roughness": float(cfg.appearance.roughness),
-                    "specular": float(cfg.appearance.specular),
-                }
-            )
-            props["bsdf"] = bsdf
-        self.mesh = mi.Mesh(
-            "tissue",
-            len(mesh.vertices),
-            len(mesh.faces),
-            props=props,
-            has_vertex_normals=not self.depth_only,
-        )
-        mp = mi.traverse(self.mesh)
-        mp["vertex_positions"] = np.ascontiguousarray(
-            np.asarray(mesh.vertices, dtype=np.float32).ravel()
-        )
-        mp["faces"] = np.ascontiguousarray(np.asarray(mesh.faces, dtype=np.uint32).ravel())
-        mp.update()
-        if not self.depth_only:
-            self.mesh.recompute_vertex_normals()
+            mucosa = self._principled_dict(texture)
+            if cut is None:
+                props["bsdf"] = mi.load_dict(mucosa)
+            else:
+                assert cut_texture is not None
+                props["bsdf"] = mi.load_dict(
+                    {
+                        "type": "blendbsdf",
+                        "weight": {"type": "mesh_attribute", "name": "face_cut"},
+                        "bsdf_0": mucosa,
+                        "bsdf_1": self._principled_dict(cut_texture),
+                    }
+                )
+        self.mesh = self._mi_mesh("tissue", mesh, props, with_normals=not self.depth_only)
+        if cut is not None:
+            self.mesh.add_attribute("face_cut", 1, self._buffer(cut.astype(np.float32)))
+        self._tool_meshes: list = []
+        if tools is not None:
+            for k, tm in enumerate(tools.meshes):
+                tprops = mi.Properties()
+                if not self.depth_only:
+                    # Brushed steel: a rough conductor plus a little diffuse scattering
+                    # (Mitsuba's blendbsdf), so the metal is not black away from highlights.
+                    tprops["bsdf"] = mi.load_dict(
+                        {
+                            "type": "blendbsdf",
+                            "weight": float(cfg.tools.diffuse),
+                            "bsdf_0": {
+                                "type": "roughconductor",
+                                "material": cfg.tools.material,
+                                "distribution": "ggx",
+                                "alpha": float(cfg.tools.roughness),
+                            },
+                            "bsdf_1": {"type": "diffuse", "reflectance": 0.55},
+                        }
+                    )
+                self._tool_meshes.append(
+                    self._mi_mesh(f"tool_{k}", tm, tprops, with_normals=not self.depth_only)
+                )
+            self._tool_local = [
+                (
+                    np.asarray(tm.vertices, dtype=np.float64),
+                    np.asarray(tm.vertex_normals, dtype=np.float64),
+                )
+                for tm in tools.meshes
+            ]
+            # Where an unused instrument waits: collapsed to a point far outside the tissue.
+            self._park_mm = np.asarray(mesh.bounds[1], dtype=np.float64) + 1.0e4
 
         spp = int(cfg.imaging.spp)
         square = int(round(spp**0.5)) ** 2 == spp
         scene: dict = {"type": "scene", "tissue": self.mesh}
+        for k, tm in enumerate(self._tool_meshes):
+            scene[f"tool_{k}"] = tm
         if not self.depth_only:
             scene["integrator"] = {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
             scene["sensor"] = self._sensor_dict(
@@ -161,6 +209,15 @@ class MeshRenderer:
             }
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
+        # Ground-truth tissue depth ignores instruments: with tools it comes from a
+        # geometry-only scene of the tissue alone (the tool-free render's depth exactly).
+        self._depth_scene = self.scene
+        self._tool_state: tuple[int, bytes] | None = None
+        if self._tool_meshes:
+            tissue_only = self._mi_mesh("tissue", mesh, mi.Properties(), with_normals=False)
+            self._depth_scene = mi.load_dict({"type": "scene", "tissue": tissue_only})
+            self._tool_ptrs = [mi.ShapePtr(t) for t in self._tool_meshes]
+            self.place_tool(-1, np.eye(4))
         self._T_cam_from_light = make_transform(
             np.eye(3), np.asarray(cfg.light.offset_mm, dtype=np.float64)
         )
@@ -178,8 +235,99 @@ class MeshRenderer:
                 texture,
                 roughness=float(cfg.appearance.roughness),
                 specular=float(cfg.appearance.specular),
+                tissue=self.mesh,
+                cut_faces=cut,
+                cut_texture=cut_texture,
+                tools=tuple(self._tool_meshes),
+                tool_bsdf=self._tool_meshes[0].bsdf() if self._tool_meshes else None,
             )
             self._gain_used = mi.Float(self._gain.ravel()[self.field_stop.ravel()])
+
+    def _principled_dict(self, texture: TextureVolume) -> dict:
+        """The tissue's principled BSDF over a baked colour volume (Mitsuba dict)."""
+        mi = self.mi
+        box = texture.box_mm
+        to_world = make_transform(np.diag(box[1] - box[0]), box[0])
+        return {
+            "type": "principled",
+            "base_color": {
+                "type": "volume",
+                "volume": {
+                    "type": "gridvolume",
+                    "grid": mi.VolumeGrid(np.ascontiguousarray(texture.rgb, dtype=np.float32)),
+                    "to_world": mi.ScalarTransform4f(to_world),
+                },
+            },
+            "roughness": float(self.cfg.appearance.roughness),
+            "specular": float(self.cfg.appearance.specular),
+        }
+
+    def _mi_mesh(
+        self, name: str, mesh: trimesh.Trimesh, props: object, with_normals: bool
+    ) -> object:
+        mi = self.mi
+        m = mi.Mesh(
+            name, len(mesh.vertices), len(mesh.faces), props=props, has_vertex_normals=with_normals
+        )
+        mp = mi.traverse(m)
+        mp["vertex_positions"] = np.ascontiguousarray(
+            np.asarray(mesh.vertices, dtype=np.float32).ravel()
+        )
+        mp["faces"] = np.ascontiguousarray(np.asarray(mesh.faces, dtype=np.uint32).ravel())
+        mp.update()
+        if with_normals:
+            m.recompute_vertex_normals()
+        return m
+
+    def _buffer(self, values: np.ndarray) -> object:
+        """A flat float32 buffer for a mesh parameter: drjit's Float on the JIT variants,
+        a numpy array on ``scalar_rgb`` (whose ``mi.Float`` is a Python float)."""
+        flat = np.ascontiguousarray(values, dtype=np.float32).ravel()
+        return self.mi.Float(flat) if self.jit else flat
+
+    def place_tool(self, kind: int, T_world_from_tool: np.ndarray) -> None:
+        """Put instrument ``kind`` (index into the :class:`~sim.tools.ToolSet`; -1 = none) at
+        ``T_world_from_tool`` ((4, 4) float64, mm) for the next renders; the others wait
+        collapsed far away. Updates the loaded scene through ``mi.traverse`` (only when the
+        placement changed)."""
+        if not self._tool_meshes:
+            raise ValueError("MeshRenderer: built without tools")
+        T = np.asarray(T_world_from_tool, dtype=np.float64)
+        state = (int(kind), T.tobytes() if kind >= 0 else b"")
+        if state == self._tool_state:
+            return
+        for k, (verts, normals) in enumerate(self._tool_local):
+            if k == kind:
+                world = verts @ T[:3, :3].T + T[:3, 3]
+                n_world = normals @ T[:3, :3].T
+            else:
+                world = np.broadcast_to(self._park_mm, verts.shape)
+                n_world = np.broadcast_to(np.array([0.0, 0.0, 1.0]), verts.shape)
+            self.params[f"tool_{k}.vertex_positions"] = self._buffer(world)
+            if not self.depth_only:
+                self.params[f"tool_{k}.vertex_normals"] = self._buffer(n_world)
+        self.params.update()
+        self._tool_state = state
+
+    def _visible_z_and_tool(self, T: np.ndarray) -> tuple[object, object]:
+        """Unevaluated drjit (z-depth of the first hit with instruments, NaN = miss; True
+        where that hit is an instrument) along every raw pixel centre's exact ray."""
+        dr, mi = self.drjit, self.mi
+        R = [dr.opaque(mi.Float, float(x)) for x in T[:3, :3].ravel()]
+        o = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in T[:3, 3]))
+        d = self._dirs_cam
+        d_world = mi.Vector3f(
+            R[0] * d.x + R[1] * d.y + R[2] * d.z,
+            R[3] * d.x + R[4] * d.y + R[5] * d.z,
+            R[6] * d.x + R[7] * d.y + R[8] * d.z,
+        )
+        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d_world), coherent=True)
+        z = pi.t * d.z
+        valid = pi.is_valid() & (z > 0)
+        tool = valid & (pi.shape == self._tool_ptrs[0])
+        for ptr in self._tool_ptrs[1:]:
+            tool |= valid & (pi.shape == ptr)
+        return dr.select(valid, z, dr.nan), tool
 
     def _sensor_dict(
         self, sampler: dict, pixel_format: str, grid: RenderGrid | None = None
@@ -214,11 +362,11 @@ class MeshRenderer:
         """
         T = check_rigid(poses, "T_world_from_cam").reshape(-1, 4, 4)
         if not self.jit:
-            return np.stack([self._depth_via_sensor(t) for t in T])
-        z = jit_z_depth(self.mi, self.scene, self._dirs_cam, T)
+            return np.stack([self._depth_via_sensor(t, self._depth_scene) for t in T])
+        z = jit_z_depth(self.mi, self._depth_scene, self._dirs_cam, T)
         return np.array(z, dtype=np.float32).reshape(len(T), *self.camera.shape)
 
-    def _depth_via_sensor(self, T_world_from_cam: np.ndarray) -> np.ndarray:
+    def _depth_via_sensor(self, T_world_from_cam: np.ndarray, scene: object) -> np.ndarray:
         """Depth from the sensor's ``depth`` AOV (scalar_rgb has no vectorised ray queries).
 
         A 1-spp stratified sampler without jitter puts the one sample at the pixel centre;
@@ -242,9 +390,7 @@ class MeshRenderer:
             mitsuba_to_world(T_world_from_cam)
         )
         self._depth_sensor_params.update()
-        img = mi.render(
-            self.scene, sensor=self._depth_sensor, integrator=self._depth_integrator, spp=1
-        )
+        img = mi.render(scene, sensor=self._depth_sensor, integrator=self._depth_integrator, spp=1)
         aov = np.array(img, dtype=np.float32)[..., -1]
         z_grid = z_depth_from_mitsuba_depth(aov, self._depth_grid, self.cfg.camera.near_clip_mm)
         z = remap_to_camera(np.nan_to_num(z_grid, nan=0.0), self._depth_grid, nearest=True)
@@ -301,13 +447,31 @@ class MeshRenderer:
         rad = np.array(img, dtype=np.float32)[..., :3]
         return remap_to_camera(rad, self.grid, nearest=False)
 
-    def render(self, T_world_from_cam: np.ndarray, index: int = 0, seed: int = 0) -> RenderedFrame:
+    def render(
+        self,
+        T_world_from_cam: np.ndarray,
+        index: int = 0,
+        seed: int = 0,
+        tool: tuple[int, np.ndarray] | None = None,
+        effects: FrameEffects | None = None,
+    ) -> RenderedFrame:
         """Depth, validity and (unless depth-only) RGB of one frame.
 
         T_world_from_cam : (4, 4) float64 true pose, mm. ``index`` and ``seed`` seed the
         Monte Carlo sampler and the sensor noise (same seed and index -> same bytes).
+        tool : (kind, (4, 4) T_world_from_tool) of the instrument in this frame (kind -1 =
+        none); renderers built with tools place none when it is None.
+        effects : smoke, motion blur and lens smear (:mod:`sim.effects`); None or inactive
+        effects give exactly the bytes of a render without them.
         """
         T = check_rigid(T_world_from_cam, "T_world_from_cam")
+        if self._tool_meshes:
+            kind, T_tool = tool if tool is not None else (-1, np.eye(4))
+            self.place_tool(int(kind), T_tool)
+        elif tool is not None and int(tool[0]) >= 0:
+            raise ValueError("MeshRenderer: built without tools, cannot place one")
+        if effects is not None and effects.active and not self.depth_only:
+            return self._render_with_effects(T, index, seed, effects)
         if self._direct is not None:
             return self._render_jit(T, index, seed)
         depth = self.render_depth(T)[0]
@@ -319,7 +483,67 @@ class MeshRenderer:
             rgb = sensor_image(
                 rad, self._gain, self.cfg.imaging, np.random.default_rng([int(seed), int(index), 5])
             )
-        return RenderedFrame(depth_mm=depth, valid=valid, rgb=rgb)
+        vis, tmask = self._visible_host(T, depth)
+        return RenderedFrame(
+            depth_mm=depth, valid=valid, rgb=rgb, depth_visible_mm=vis, tool_mask=tmask
+        )
+
+    def _visible_host(
+        self, T: np.ndarray, depth: np.ndarray
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Visible depth and tool mask (None without tools) outside the one-launch path."""
+        if not self._tool_meshes:
+            return None, None
+        if self.jit:
+            z, tool = self._visible_z_and_tool(T)
+            self.drjit.eval(z, tool)
+            shape = self.camera.shape
+            return (
+                np.array(z, dtype=np.float32).reshape(shape),
+                np.array(tool, dtype=bool).reshape(shape),
+            )
+        vis = self._depth_via_sensor(T, self.scene)
+        # scalar_rgb has no per-ray shape ids: the tool is where the visible surface lies
+        # in front of the tissue.
+        tmask = np.isfinite(vis) & ~(np.abs(vis - np.nan_to_num(depth, nan=np.inf)) <= 1e-3)
+        return vis, tmask
+
+    def _render_with_effects(
+        self, T: np.ndarray, index: int, seed: int, fx: FrameEffects
+    ) -> RenderedFrame:
+        """A frame with smoke, motion blur or a lens smear: radiance on the host (the mean
+        of the sub-frame renders when blurred), the effects, then the same sensor model
+        (in drjit on the JIT variants)."""
+        depth = self.render_depth(T)[0]
+        vis, tmask = self._visible_host(T, depth)
+        fs = _frame_seed(seed, index)
+        if fx.blurred:
+            assert fx.T_prev is not None
+            poses = blur_poses(fx.T_prev, T, fx.blur.shutter, fx.blur.subframes)
+            rad = np.mean(
+                [self.render_radiance(p, seed=fs + j) for j, p in enumerate(poses)], axis=0
+            ).astype(np.float32)
+        else:
+            rad = self.render_radiance(T, seed=fs)
+        rad = apply_effects(rad, depth if vis is None else vis, fx)
+        if self._direct is None:
+            rgb = sensor_image(
+                rad, self._gain, self.cfg.imaging, np.random.default_rng([int(seed), int(index), 5])
+            )
+        else:
+            dr, mi = self.drjit, self.mi
+            H, W = self.camera.shape
+            used = np.ascontiguousarray(rad.reshape(-1, 3)[self._direct.used].T)
+            q = self._direct.sensor(
+                mi.Color3f(used), self._gain_used, self.cfg.imaging, _noise_key(seed, index)
+            )
+            rgbx = dr.zeros(mi.UInt32, H * W)
+            dr.scatter(rgbx, q.x | (q.y << 8) | (q.z << 16), self._direct.used_index)
+            dr.eval(rgbx)
+            rgb = _unpack_rgb(rgbx, H, W)
+        return RenderedFrame(
+            depth_mm=depth, valid=np.isfinite(depth), rgb=rgb, depth_visible_mm=vis, tool_mask=tmask
+        )
 
     def _render_jit(self, T: np.ndarray, index: int, seed: int) -> RenderedFrame:
         """RGB-D on the JIT variants: one launch for the depth rays, colour and sensor.
@@ -328,26 +552,38 @@ class MeshRenderer:
         of the field-stop pixels and evaluated in the same launch; the sensor model runs
         in drjit on the used pixels (only the auto-exposure mean is a separate reduction),
         whose 8-bit RGB is packed into one 32-bit word and scattered into the full frame
-        there too, so the host only copies the results out.
+        there too, so the host only copies the results out. With instruments, the visible
+        depth and tool mask rays join the same launch.
         """
         assert self._direct is not None
         dr, mi = self.drjit, self.mi
         H, W = self.camera.shape
-        z = jit_z_depth(mi, self.scene, self._dirs_cam, T[None])
+        z = jit_z_depth(mi, self._depth_scene, self._dirs_cam, T[None])
         dr.schedule(z)
+        extra: tuple = ()
+        if self._tool_meshes:
+            extra = self._visible_z_and_tool(T)
+            dr.schedule(*extra)
         rad = self._direct.radiance(T, seed=_frame_seed(seed, index))
         q = self._direct.sensor(rad, self._gain_used, self.cfg.imaging, _noise_key(seed, index))
         rgbx = dr.zeros(mi.UInt32, H * W)
         dr.scatter(rgbx, q.x | (q.y << 8) | (q.z << 16), self._direct.used_index)
-        dr.eval(z, rgbx)
+        dr.eval(z, rgbx, *extra)
         depth = np.array(z, dtype=np.float32).reshape(H, W)
-        # Bytes r, g, b, 0 of each little-endian word: an (H, W, 4) view, alpha dropped.
-        rgb = (
-            np.asarray(rgbx, dtype=np.uint32)
-            .astype("<u4", copy=False)
-            .view(np.uint8)
-            .reshape(H, W, 4)
-        )
+        vis = tmask = None
+        if extra:
+            vis = np.array(extra[0], dtype=np.float32).reshape(H, W)
+            tmask = np.array(extra[1], dtype=bool).reshape(H, W)
         return RenderedFrame(
-            depth_mm=depth, valid=np.isfinite(depth), rgb=np.ascontiguousarray(rgb[..., :3])
+            depth_mm=depth,
+            valid=np.isfinite(depth),
+            rgb=_unpack_rgb(rgbx, H, W),
+            depth_visible_mm=vis,
+            tool_mask=tmask,
         )
+
+
+def _unpack_rgb(rgbx: object, H: int, W: int) -> np.ndarray:
+    """(H, W, 3) uint8 from drjit words packing r, g, b in bytes 0-2 (little-endian)."""
+    rgb = np.asarray(rgbx, dtype=np.uint32).astype("<u4", copy=False).view(np.uint8)
+    return np.ascontiguousarray(rgb.reshape(H, W, 4)[..., :3])

@@ -46,7 +46,7 @@ from sim.appearance import TEXEL_LEVELS, TextureVolume
 from sim.config import ImagingConfig, LightConfig
 
 
-def _undistorted_rays(camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+def undistorted_rays(camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(N, 3) float64 rays (z = 1, OpenCV axes) whose distorted projection is (u, v)."""
     u = np.asarray(u, dtype=np.float64).ravel()
     v = np.asarray(v, dtype=np.float64).ravel()
@@ -73,9 +73,9 @@ def pixel_ray_frames(camera: Camera, used: np.ndarray) -> tuple[np.ndarray, ...]
         raise ValueError(f"used: expected a {camera.shape} mask, got shape {used.shape}")
     u, v = camera.pixel_grid()
     u, v = u[used], v[used]
-    ray = _undistorted_rays(camera, u, v)
-    d_du = _undistorted_rays(camera, u + 0.5, v) - _undistorted_rays(camera, u - 0.5, v)
-    d_dv = _undistorted_rays(camera, u, v + 0.5) - _undistorted_rays(camera, u, v - 0.5)
+    ray = undistorted_rays(camera, u, v)
+    d_du = undistorted_rays(camera, u + 0.5, v) - undistorted_rays(camera, u - 0.5, v)
+    d_dv = undistorted_rays(camera, u, v + 0.5) - undistorted_rays(camera, u, v - 0.5)
     return ray, d_du, d_dv
 
 
@@ -172,8 +172,9 @@ class PackedTexture:
             float(r / s) for r, s in zip(self.res, box[1] - box[0], strict=True)
         )
 
-    def eval(self, p: object) -> object:
-        """drjit Color3f base colour at world points ``p`` (drjit Point3f, mm)."""
+    def eval(self, p: object, active: object = True) -> object:
+        """drjit Color3f base colour at world points ``p`` (drjit Point3f, mm); lanes
+        outside ``active`` read nothing (0)."""
         mi = self.mi
         import drjit as dr  # noqa: PLC0415 - only after mitsuba picked the variant
 
@@ -195,7 +196,7 @@ class PackedTexture:
                 row = (idx[2][cz] * ny + idx[1][cy]) * nx
                 for cx in range(2):
                     w = wz * wy * (fx if cx else 1.0 - fx)
-                    v = dr.gather(mi.UInt32, self._data, row + idx[0][cx])
+                    v = dr.gather(mi.UInt32, self._data, row + idx[0][cx], active)
                     out += w * mi.Color3f(
                         mi.Float(v & 1023), mi.Float((v >> 10) & 1023), mi.Float(v >> 20)
                     )
@@ -213,6 +214,12 @@ class SpotDirectIntegrator:
     spp : samples per pixel (4x4-style stratified when a perfect square, else uniform).
     texture : the tissue's base colour volume (the scene's principled BSDF uses the same).
     roughness, specular : the principled BSDF's parameters (``sim.config.AppearanceConfig``).
+    tissue : the tissue mesh in ``scene`` (default: the scene's only shape).
+    cut_faces : optional (F,) bool per tissue face, True = a cut face, shaded with
+        ``cut_texture`` as base colour instead of ``texture`` (same lobes; the scene's
+        ``blendbsdf`` over the ``face_cut`` mesh attribute does the same).
+    tools : other meshes in ``scene`` (instruments), shaded with ``tool_bsdf`` (Mitsuba's
+        own BSDF object, evaluated on Mitsuba's surface interaction of the hit).
     """
 
     def __init__(
@@ -226,19 +233,48 @@ class SpotDirectIntegrator:
         texture: TextureVolume,
         roughness: float,
         specular: float,
+        tissue: object | None = None,
+        cut_faces: np.ndarray | None = None,
+        cut_texture: TextureVolume | None = None,
+        tools: tuple[object, ...] = (),
+        tool_bsdf: object | None = None,
     ) -> None:
         import drjit as dr  # noqa: PLC0415 - only after mitsuba picked the variant
 
         self.mi, self.dr, self.scene = mi, dr, scene
         shapes = scene.shapes()
-        if len(shapes) != 1 or not shapes[0].is_mesh() or not shapes[0].has_vertex_normals():
+        if tissue is None:
+            if len(shapes) != 1:
+                raise ValueError(
+                    "SpotDirectIntegrator: name the tissue mesh of a multi-shape scene"
+                )
+            tissue = shapes[0]
+        if not tissue.is_mesh() or not tissue.has_vertex_normals():
+            raise ValueError("SpotDirectIntegrator: the tissue must be a mesh with vertex normals")
+        if len(shapes) != 1 + len(tools):
             raise ValueError(
-                "SpotDirectIntegrator: the scene must hold one mesh with vertex normals"
+                "SpotDirectIntegrator: the scene holds shapes other than tissue and tools"
             )
+        if tools and tool_bsdf is None:
+            raise ValueError("SpotDirectIntegrator: tools need a tool_bsdf")
+        self._tool_ptrs = [mi.ShapePtr(t) for t in tools]
+        self._tool_bsdf = tool_bsdf
+        self._cut = None
+        self.cut_texture = None
+        if cut_faces is not None and np.any(cut_faces):
+            if cut_texture is None:
+                raise ValueError("SpotDirectIntegrator: cut faces need a cut_texture")
+            if len(cut_faces) != tissue.face_count():
+                raise ValueError(
+                    f"SpotDirectIntegrator: {len(cut_faces)} cut-face labels for "
+                    f"{tissue.face_count()} faces"
+                )
+            self._cut = mi.UInt32(np.asarray(cut_faces, dtype=bool).astype(np.uint32))
+            self.cut_texture = PackedTexture(mi, cut_texture)
         # The kernel interpolates the shading normal itself from the preliminary hit (the
         # BSDF and the light need nothing else), instead of Mitsuba's full surface
         # interaction: same normal to float precision, ~5 % less time per frame.
-        mesh_params = mi.traverse(shapes[0])
+        mesh_params = mi.traverse(tissue)
         self._faces = mi.UInt32(mesh_params["faces"])
         self._vertex_normals = mi.Float(mesh_params["vertex_normals"])
         self.shape = camera.shape
@@ -335,15 +371,24 @@ class SpotDirectIntegrator:
         axis = mi.Vector3f(*(dr.opaque(mi.Float, float(x)) for x in T[:3, 2]))
         spp = self.spp
         origin, d_world = self.sample_rays(T, seed)
-        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(origin, d_world), coherent=True)
+        ray = mi.Ray3f(origin, d_world)
+        pi = self.scene.ray_intersect_preliminary(ray, coherent=True)
         active = pi.is_valid()
+        tissue = active
+        is_tool = None
+        for ptr in self._tool_ptrs:
+            hit = pi.shape == ptr
+            is_tool = hit if is_tool is None else is_tool | hit
+        if is_tool is not None:
+            is_tool &= active
+            tissue = active & ~is_tool
         p = origin + d_world * pi.t
-        corners = dr.gather(mi.Vector3u, self._faces, pi.prim_index, active)
+        corners = dr.gather(mi.Vector3u, self._faces, pi.prim_index, tissue)
         b1, b2 = pi.prim_uv.x, pi.prim_uv.y
         normal = dr.normalize(
-            dr.gather(mi.Vector3f, self._vertex_normals, corners.x, active) * (1.0 - b1 - b2)
-            + dr.gather(mi.Vector3f, self._vertex_normals, corners.y, active) * b1
-            + dr.gather(mi.Vector3f, self._vertex_normals, corners.z, active) * b2
+            dr.gather(mi.Vector3f, self._vertex_normals, corners.x, tissue) * (1.0 - b1 - b2)
+            + dr.gather(mi.Vector3f, self._vertex_normals, corners.y, tissue) * b1
+            + dr.gather(mi.Vector3f, self._vertex_normals, corners.z, tissue) * b2
         )
 
         to_light = lp - p
@@ -361,8 +406,19 @@ class SpotDirectIntegrator:
             shadow = mi.Ray3f(lp, -wo)
             shadow.maxt = dist * (1.0 - 1e-4)
             active &= ~self.scene.ray_test(shadow, coherent=True, active=active)
-        base = self.texture.eval(p)
+        if self._cut is None:
+            base = self.texture.eval(p)
+        else:
+            cut = dr.gather(mi.UInt32, self._cut, pi.prim_index, tissue) > 0
+            base = dr.select(
+                cut, self.cut_texture.eval(p, cut), self.texture.eval(p, tissue & ~cut)
+            )
         f = principled_eval(dr, normal, -d_world, wo, base, self.roughness, self.eta)
+        if is_tool is not None:
+            # Instruments: Mitsuba's own BSDF (roughconductor) on its surface interaction.
+            si = pi.compute_surface_interaction(ray, mi.RayFlags.All, is_tool)
+            f_tool = self._tool_bsdf.eval(mi.BSDFContext(), si, si.to_local(wo), is_tool)
+            f = dr.select(is_tool, f_tool, f)
         value = dr.select(active, f * (self._intensity * falloff / dist2), 0.0)
         # One kernel for all three channels (a per-channel block sum would trace it thrice).
         dr.eval(value)

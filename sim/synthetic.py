@@ -20,6 +20,35 @@ CHAMBER_CENTER_MM = np.array([38.0, 0.0, 0.0])
 CHAMBER_RADIUS_MM = 9.0
 
 
+BITE_EXTENTS_MM = np.array([4.0, 3.0, 4.0])
+
+
+def bite_centers_mm(n_bites: int) -> np.ndarray:
+    """(n_bites, 3) centres of the toy's box bites, mm."""
+    return np.array(
+        [
+            [CHAMBER_CENTER_MM[0] + CHAMBER_RADIUS_MM + 0.5, -3.0 + 3.0 * k, 0.0]
+            for k in range(n_bites)
+        ]
+    )
+
+
+def toy_cut_faces(mesh: trimesh.Trimesh, n_bites: int) -> np.ndarray:
+    """(F,) bool: faces of ``mesh`` lying on the surface of one of the first ``n_bites``
+    bite boxes (the faces a cut created), from the boxes' planes (tolerance 1e-5 mm)."""
+    c = np.asarray(mesh.triangles_center)
+    half = BITE_EXTENTS_MM / 2.0
+    out = np.zeros(len(c), dtype=bool)
+    for center in bite_centers_mm(n_bites):
+        q = np.abs(c - center) / half
+        out |= (
+            (q.max(axis=1) > 1.0 - 1e-5)
+            & (q.max(axis=1) < 1.0 + 1e-5)
+            & np.all(q <= 1.0 + 1e-5, axis=1)
+        )
+    return out
+
+
 def toy_meshes(n_bites: int = 2) -> list[trimesh.Trimesh]:
     """Tissue meshes (closed, mm) of the preoperative state and after each bite."""
     block = trimesh.creation.box(extents=[60.0, 36.0, 36.0])
@@ -31,18 +60,18 @@ def toy_meshes(n_bites: int = 2) -> list[trimesh.Trimesh]:
     chamber.apply_translation(CHAMBER_CENTER_MM)
     mesh = block.difference(trimesh.boolean.union([tunnel, chamber]))
     meshes = [mesh]
-    for k in range(n_bites):
-        bite = trimesh.creation.box(extents=[4.0, 3.0, 4.0])
-        bite.apply_translation(
-            [CHAMBER_CENTER_MM[0] + CHAMBER_RADIUS_MM + 0.5, -3.0 + 3.0 * k, 0.0]
-        )
+    for center in bite_centers_mm(n_bites):
+        bite = trimesh.creation.box(extents=BITE_EXTENTS_MM)
+        bite.apply_translation(center)
         mesh = mesh.difference(bite)
         meshes.append(mesh)
     return meshes
 
 
 def write_toy_phantom(out_dir: str | Path, n_bites: int = 2, seed: int = 0) -> Path:
-    """Write the toy phantom folder (``phantom.json`` + ``meshes/step_NN.ply``) atomically."""
+    """Write the toy phantom folder (``phantom.json``, ``meshes/step_NN.ply`` and the cut-face
+    labels ``meshes/step_NN_cut_faces.npy``, uint8 per face, as ``phantoms`` writes them)
+    atomically."""
     meshes = toy_meshes(n_bites)
     out = Path(out_dir)
     target = CHAMBER_CENTER_MM + np.array([CHAMBER_RADIUS_MM, 0.0, 0.0])
@@ -52,12 +81,16 @@ def write_toy_phantom(out_dir: str | Path, n_bites: int = 2, seed: int = 0) -> P
         for k, m in enumerate(meshes):
             rel = f"meshes/step_{k:02d}.ply"
             m.export(tmp / rel)
+            cut = toy_cut_faces(m, k).astype(np.uint8)
+            np.save(tmp / f"meshes/step_{k:02d}_cut_faces.npy", cut)
             before = meshes[k - 1].volume if k else m.volume
             steps.append(
                 {
                     "step": k,
                     "name": "preop" if k == 0 else f"bite_{k}",
                     "mesh": rel,
+                    "cut_faces": f"meshes/step_{k:02d}_cut_faces.npy",
+                    "cut_face_count": int(cut.sum()),
                     "removed_volume_mm3": float(before - m.volume),
                 }
             )
