@@ -638,7 +638,11 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_m
                     if tsdf[idx] > 0.0:
                         ok = True
                         break
-                if not ok:
+                # The estimate must see past this layer's back face, not only past its front
+                # (the change mask's threshold): a lamella thinner than the threshold, or a
+                # pixel the mask's closing added, would otherwise be deleted while the
+                # estimate still lies on it.
+                if not ok or ze < z + 0.5 * tol_mm:
                     break
                 z0[v, u, n] = start
                 z1[v, u, n] = z

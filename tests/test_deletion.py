@@ -153,3 +153,30 @@ def test_noisy_relative_depth_with_hand_eye_error_registers_or_falls_back(scene:
         # The scale is anchored to the render: never collapses.
         assert 0.037 * 0.8 < 1.0 / f["scale"] < 0.037 * 1.25
     _check_window(scene["model"], new, 2 * VOXEL_MM)
+
+
+def test_a_lamella_thinner_than_the_threshold_is_not_deleted_where_it_still_stands() -> None:
+    """A changed pixel whose estimate still lies on a thin lamella (the mask's closing, or a
+    noisy threshold, put it in the mask) deletes nothing: the estimate must see past the
+    layer's back face, not only past its front by the threshold."""
+    from chisel.fusion import CARVE_DELETED, carve_first_layer
+
+    block = _box([-14.0, -14.0, -16.0], [14.0, 14.0, 24.0])
+    solid = block.difference(_box([-10, -10, -12], [10, 10, 10.0]), engine="manifold")
+    solid = solid.difference(_box([-10, -10, 10.8], [10, 10, 20]), engine="manifold")  # 0.8 mm
+    preop = _poses(8, seed=1)
+    model = build_preop_model(None, CAM, preop, BuildConfig(0.25, 1.0), ct=ct_from_mesh(solid))
+    T = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 10.0]), np.array([0.0, -1.0, 0.0]))
+    depth = MeshRaycaster.from_trimesh(solid).render_depth(CAM, T)
+    before = model.tsdf.copy()
+    status, n = carve_first_layer(
+        model, CAM, T, depth, depth, np.ones(depth.shape, bool), tol_mm=1.0
+    )
+    assert n == 0 and not (status == CARVE_DELETED).any()
+    np.testing.assert_array_equal(model.tsdf, before)
+    # The same lamella with the estimate on the next surface (it was removed) is deleted.
+    behind = MeshRaycaster.from_trimesh(
+        solid.difference(_box([-3, -3, 9.0], [3, 3, 12.0]), engine="manifold")
+    ).render_depth(CAM, T)
+    status, n = carve_first_layer(model, CAM, T, depth, behind, behind > depth + 1.0, tol_mm=1.0)
+    assert n > 0 and (status == CARVE_DELETED).any()
