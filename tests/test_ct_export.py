@@ -159,3 +159,43 @@ def test_removed_dice():
     a[0, 0, :2] = True
     b[0, 0, 1:3] = True
     assert removed_dice(a, b) == pytest.approx(0.5)
+
+
+# a slab of CT tissue that the preoperative model already holds as free space (CT detail
+# thinner than the model's voxels), away from the removed box
+SLAB_LO = np.array([11.0 - 0.3 - 4.0, -5.0 + 9.5, 3.0 + 0.5])
+SLAB_HI = np.array([11.0 - 0.3, -5.0 + 11.5, 3.0 + 2.5])
+
+
+def _slab_sdf(p: np.ndarray) -> np.ndarray:
+    q = np.maximum(SLAB_LO - p, p - SLAB_HI)
+    return -(np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(np.max(q, axis=-1), 0))
+
+
+def _sdf_model(sdf, voxel_mm: float = 0.25) -> TsdfModel:
+    m = _model(voxel_mm)
+    ijk = np.stack(np.meshgrid(*[np.arange(k) for k in m.shape], indexing="ij"), axis=-1)
+    p = ijk * voxel_mm + m.T_world_from_voxel[:3, 3]
+    tsdf = np.clip(sdf(p) / TRUNC_MM, -1, 1).astype(np.float32)
+    return TsdfModel(tsdf, m.weight, m.T_world_from_voxel, voxel_mm, TRUNC_MM)
+
+
+def test_preop_model_free_space_is_not_removed(tmp_path: Path):
+    # The update carved the box; the slab was never tissue in the preoperative model.
+    ct = CtVolume(np.ones(CT_SHAPE, np.uint8), T_CT, "label")
+    preop = _sdf_model(_slab_sdf)
+    updated = _sdf_model(lambda p: np.maximum(_box_sdf(p), _slab_sdf(p)))
+    box = _box_sdf(_ct_world()) > 0
+    slab = _slab_sdf(_ct_world()) > 0
+    assert box.sum() == 100 and slab.sum() > 0 and not np.any(box & slab)
+    assert np.array_equal(updated_ct(ct, updated).removed, box | slab)  # without: both
+    assert np.array_equal(updated_ct(ct, updated, preop=preop).removed, box)
+    assert not updated_ct(ct, preop, preop=preop).removed.any()  # no update, nothing removed
+    # the CLI's --preop-model
+    write_ct_volume(tmp_path / "lab.nii.gz", ct.data, T_CT)
+    updated.save(tmp_path / "u.npz")
+    preop.save(tmp_path / "p.npz")
+    argv = ["export-ct", "--model", str(tmp_path / "u.npz"), "--ct", str(tmp_path / "lab.nii.gz")]
+    out = tmp_path / "out.nii.gz"
+    assert main([*argv, "--preop-model", str(tmp_path / "p.npz"), "--out", str(out)]) == 0
+    assert np.array_equal(read_ct_volume(out).data == 0, box)

@@ -22,6 +22,7 @@ grid, with its header and orientation.
 
   removed   CT voxels that are tissue in the CT (label > 0, or above -480 HU) and observed
             free space in the model (signed distance > 0 at the voxel centre, weight > 0)
+            and, with --preop-model, not already free space in the preoperative model
   label CT  removed voxels take the air label 0
   HU CT     air (-1000 HU) with a partial-volume ramp one CT voxel wide across the new
             boundary, from the model's signed distance d: f = clip(0.5 - d / voxel, 0, 1),
@@ -53,6 +54,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="updated CT (.nii/.nii.gz/.nrrd), written atomically",
     )
     p.add_argument(
+        "--preop-model",
+        type=Path,
+        help="the preoperative model the update started from (.npz): tissue it already held "
+        "as free space (CT detail thinner than its voxels) is kept, so that only what the "
+        "update carved is removed (recommended)",
+    )
+    p.add_argument(
         "--kind",
         choices=("auto", "intensity", "label"),
         default="auto",
@@ -74,7 +82,8 @@ def _cmd_export_ct(args: argparse.Namespace) -> int:
         raise InvalidInputError(args.ct, f"CT must be a volume, one of {VOLUME_SUFFIXES}")
     ct = read_ct_volume(args.ct, args.kind)
     model = TsdfModel.load(args.model)
-    result = updated_ct(ct, model, model_source=str(args.model))
+    preop = TsdfModel.load(args.preop_model) if args.preop_model else None
+    result = updated_ct(ct, model, model_source=str(args.model), preop=preop)
     write_ct_volume(args.out, result.volume, like=ct)
     spacing = ct.spacing_mm
     log.info(
