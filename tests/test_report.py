@@ -364,3 +364,198 @@ def test_chromium_harness_catches_console_errors(tmp_path: Path) -> None:
     logs, facts = _open_in_chromium(page, tmp_path / "r.png", tmp_path / "profile")
     assert facts["plots"] == 1
     assert any(e["level"] == "SEVERE" and "undefinedFn" in e["message"] for e in logs)
+
+
+# ------------------------------------------------------------------------- updated-CT slices
+
+MARKER_HU = 1500.0  # brighter than anything else in the synthetic CT: white, and unique
+
+
+def _ct_case(flip: bool):
+    """A tiny HU CT (1 mm voxels), a 5^3 tissue block that a step removes (plus one voxel
+    in the block's centre row so the slices cut there), a method that removed part of it,
+    and marker voxels: patient's left (+x), anterior (-y) and superior (+z) of the block.
+
+    flip: voxel axes i, j run towards the patient's right and front (an RAS-ordered file)."""
+    from chisel.io.ct import CtVolume
+
+    shape = (30, 26, 24)
+    T = np.eye(4)
+    if flip:
+        T[:3, :3] = np.diag([-1.0, -1.0, 1.0])
+        T[:3, 3] = [shape[0] - 1, shape[1] - 1, 0]
+    T[:3, 3] += [-10.0, 5.0, -3.0]
+    world_c = np.array([5.0, 18.0, 9.0])  # block centre, LPS mm
+
+    def vox(p):
+        return tuple(int(v) for v in np.rint(np.linalg.solve(T, [*p, 1.0])[:3]))
+
+    hu = np.full(shape, -1000.0, np.float32)
+    c = np.array(vox(world_c))
+    hu[c[0] - 5 : c[0] + 6, c[1] - 5 : c[1] + 6, c[2] - 5 : c[2] + 6] = 40.0  # soft tissue
+    block = np.zeros(shape, bool)
+    block[c[0] - 2 : c[0] + 3, c[1] - 2 : c[1] + 3, c[2] - 2 : c[2] + 3] = True
+    block[vox(world_c + [3.0, 0, 0])] = True  # the centre row: the most voxels at y_c, z_c
+    hu[block] = 700.0  # bone, so that the removed region is obvious before
+    markers = {
+        "left": world_c + [8.0, 0.0, 0.0],
+        "anterior": world_c + [0.0, -8.0, 0.0],
+        "superior": world_c + [0.0, 0.0, 8.0],
+    }
+    for p in markers.values():
+        hu[vox(p)] = MARKER_HU
+    before = CtVolume(hu, T, "intensity")
+    truth = CtVolume((hu > -480).astype(np.uint8) * ~block, T, "label")
+    part = block.copy()
+    part[: c[0], :, :] = False  # the method removed only the half at larger i
+    upd = hu.copy()
+    upd[part] = -1000.0
+    box = RoiBox(world_c - 6.0, world_c + 6.0)
+    return before, CtVolume(upd, T, "intensity"), truth, box, part, markers, world_c
+
+
+def _decode_png(uri: str) -> np.ndarray:
+    import base64
+
+    import cv2
+
+    buf = np.frombuffer(base64.b64decode(uri.split(",", 1)[1]), np.uint8)
+    return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def _slice_pngs(text: str) -> dict[tuple[str, str], np.ndarray]:
+    found = re.findall(
+        r"data-plane='(\w+)' data-name='([\w ]+)' src='(data:image/png;base64,[^']+)'", text
+    )
+    return {(plane, name): _decode_png(uri) for plane, name, uri in found}
+
+
+def _pixel_world(s, rc) -> np.ndarray:
+    r, c = rc
+    return (s.T_world_from_pixel @ [c, r, 0.0, 1.0])[:3]
+
+
+@pytest.mark.parametrize("flip", [False, True], ids=["lps-ordered", "ras-ordered"])
+def test_ct_slices_orientation_outline_and_dice(flip: bool) -> None:
+    from chisel.ct_export import removed_region_scores
+    from chisel.eval.ct_slices import UPSCALE, make_ct_slices, window_grey
+
+    before, upd, truth, box, part, markers, world_c = _ct_case(flip)
+    dice = removed_region_scores(before, upd, truth)["dice"]
+    assert 0.3 < dice < 0.9
+    axial, coronal = make_ct_slices(
+        2, before, {"updated": upd}, box, truth_label=truth, dice={"updated": dice}
+    )
+    assert (axial.plane, coronal.plane) == ("axial", "coronal")
+    assert axial.position_mm == pytest.approx(world_c[2])  # through the most removed voxels
+    assert coronal.position_mm == pytest.approx(world_c[1])
+    html_text = build_report_html(_metrics(), ct_slices=[axial, coronal])
+    pngs = _slice_pngs(html_text)
+    assert set(pngs) == {
+        (p, n) for p in ("axial", "coronal") for n in ("preoperative", "truth", "updated")
+    }
+    assert f"updated-CT Dice <b>{dice:.3f}</b>" in html_text and "W 2000 / L 0 HU" in html_text
+    k = UPSCALE
+    for s in (axial, coronal):
+        hu = s.images["preoperative"]
+        h, w = hu.shape
+        # every marker in the plane sits where radiologists expect it (PNG decoded)
+        png = pngs[(s.plane, "preoperative")]
+        assert png.shape == (h * k, w * k, 3)
+        white = np.argwhere(np.all(png == 255, axis=2)) // k
+        for rc in np.unique(white, axis=0):
+            p = _pixel_world(s, rc)
+            name = min(markers, key=lambda n: np.linalg.norm(markers[n] - p))
+            assert np.linalg.norm(markers[name] - p) < 0.6, (s.plane, rc, p)
+            if name == "left":  # the patient's left on the image's right
+                assert rc[1] > w / 2 + 3 and abs(rc[0] - np.argwhere(hu > 600)[:, 0].mean()) < 3
+            if name == "anterior":
+                assert s.plane == "axial" and rc[0] < h / 2 - 3  # anterior up
+            if name == "superior":
+                assert s.plane == "coronal" and rc[0] < h / 2 - 3  # superior up
+        seen = {
+            min(markers, key=lambda n: np.linalg.norm(markers[n] - _pixel_world(s, rc)))
+            for rc in np.unique(white, axis=0)
+        }
+        assert seen == ({"left", "anterior"} if s.plane == "axial" else {"left", "superior"})
+        # the method's removed pixels are exactly its removed voxels in the plane
+        removed = s.removed["updated"]
+        ijk = np.argwhere(part)
+        wv = ijk @ before.T_world_from_voxel[:3, :3].T + before.T_world_from_voxel[:3, 3]
+        axis = 2 if s.plane == "axial" else 1
+        in_plane = wv[np.isclose(wv[:, axis], s.position_mm)]
+        assert removed.sum() == len(in_plane) > 0
+        for rc in np.argwhere(removed):
+            assert np.min(np.linalg.norm(in_plane - _pixel_world(s, rc), axis=1)) < 1e-6
+        # the red outline is the inner edge of those pixels, the green one rings the truth
+        png = pngs[(s.plane, "updated")]
+        red = np.all(png == (255, 40, 40), axis=2)
+        up = np.kron(removed, np.ones((k, k), bool))
+        assert red.any() and np.all(up[red])
+        assert np.array_equal(np.argwhere(red).min(0), np.argwhere(up).min(0))
+        assert np.array_equal(np.argwhere(red).max(0), np.argwhere(up).max(0))
+        green = np.all(png == (40, 220, 40), axis=2)
+        true_up = np.kron(s.removed["truth"], np.ones((k, k), bool))
+        assert green.any() and not np.any(true_up[green])
+        assert np.array_equal(np.argwhere(green).min(0), np.argwhere(true_up).min(0) - 1)
+        # grey window W 2000 / L 0: air black, soft tissue mid grey, 1000 HU and above white
+        assert window_grey(np.array([-1000.0, 0.0, 40.0, 1000.0])).tolist() == [0, 128, 133, 255]
+        # the updated image shows air where the method removed tissue
+        assert np.all(s.images["updated"][removed] == -1000.0)
+        assert np.all(s.images["preoperative"][removed] == 700.0)
+
+
+def test_ct_slices_file_round_trip_and_cli(tmp_path: Path) -> None:
+    from chisel.eval.ct_slices import make_ct_slices, read_ct_slices, write_ct_slices
+
+    before, upd, truth, box, *_ = _ct_case(False)
+    slices = make_ct_slices(
+        1,
+        before,
+        {"updated": upd, "no_update": before},
+        box,
+        truth_label=truth,
+        dice={"updated": 0.5, "no_update": 0.0},
+    )
+    path = write_ct_slices(tmp_path / "step_01_slices.npz", slices)
+    back = read_ct_slices(path)
+    assert [(s.step, s.plane, s.methods) for s in back] == [
+        (1, p, ["updated", "no_update"]) for p in ("axial", "coronal")
+    ]
+    for a, b in zip(slices, back, strict=True):
+        assert a.dice == b.dice and a.position_mm == b.position_mm
+        np.testing.assert_array_equal(a.T_world_from_pixel, b.T_world_from_pixel)
+        for name in a.images:
+            np.testing.assert_array_equal(a.images[name], b.images[name])
+        assert set(a.removed) == set(b.removed) == {"updated", "no_update", "truth"}
+        for name in a.removed:
+            np.testing.assert_array_equal(a.removed[name], b.removed[name])
+    np.savez(tmp_path / "bad.npz", meta=np.array('{"format": "x"}'))
+    with pytest.raises(FormatVersionError):
+        read_ct_slices(tmp_path / "bad.npz")
+    with pytest.raises(InvalidInputError, match="missing"):
+        read_ct_slices(tmp_path / "none.npz")
+    with pytest.raises(InvalidInputError, match="grid"):
+        make_ct_slices(
+            1,
+            before,
+            {"updated": truth.__class__(upd.data[1:], upd.T_world_from_voxel, "intensity")},
+            box,
+        )
+    write_table(tmp_path, _metrics())
+    out = tmp_path / "r.html"
+    rc = cli_main(
+        [
+            "report",
+            "--metrics",
+            str(tmp_path / "metrics.json"),
+            "--out",
+            str(out),
+            "--ct-slices",
+            str(path),
+        ]
+    )
+    assert rc == 0
+    text = out.read_text()
+    assert "Updated CT through the change box" in text
+    assert len(_slice_pngs(text)) == 2 * 4  # preop, truth, two methods; two planes

@@ -131,6 +131,7 @@ def _run_sweep(args: argparse.Namespace) -> int:
 
 def _run_report(args: argparse.Namespace) -> int:
     # Imported here: plotly is only needed for the report.
+    from chisel.eval.ct_slices import read_ct_slices
     from chisel.eval.report import ReportMeshes, read_panels, write_report
 
     metrics = read_metrics(args.metrics)
@@ -151,7 +152,10 @@ def _run_report(args: argparse.Namespace) -> int:
     sweeps = {
         name: read_sweep_csv(p) for name, p in _name_path_pairs(args.sweep, "--sweep").items()
     }
-    write_report(args.out, metrics, panels, meshes, sweeps or None, title=args.title)
+    ct_slices = [s for p in args.ct_slices or [] for s in read_ct_slices(p)]
+    write_report(
+        args.out, metrics, panels, meshes, sweeps or None, title=args.title, ct_slices=ct_slices
+    )
     log.info("wrote %s", args.out)
     return 0
 
@@ -218,7 +222,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "report",
         help="self-contained HTML report (tables, plots, panels, 3D view)",
         description="Write one offline HTML file: the metrics tables, error per step, sweep "
-        "plots, per-step depth panels and a 3D view of the preoperative and updated meshes.",
+        "plots, per-step depth panels, axial and coronal slices of the preoperative and "
+        "updated CTs through the change box (window W 2000 / L 0 HU, radiological "
+        "orientation, removed region outlined, updated-CT Dice), and a 3D view of the "
+        "preoperative and updated meshes.",
     )
     r.add_argument("--metrics", type=Path, required=True, help="metrics.json")
     r.add_argument("--panels", type=Path, help="panels .npz (chisel.eval.report.write_panels)")
@@ -235,6 +242,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     r.add_argument(
         "--sweep", nargs="+", metavar="NAME=CSV", help="sweep CSVs (chisel evaluate sweep)"
+    )
+    r.add_argument(
+        "--ct-slices",
+        nargs="+",
+        type=Path,
+        metavar="NPZ",
+        help="updated-CT slices through the change box, one .npz per step "
+        "(chisel.eval.ct_slices.write_ct_slices; the workflow's export/step_NN_slices.npz)",
     )
     r.add_argument("--title", default="Endoscopic Chisel: evaluation report")
     r.add_argument("--out", type=Path, required=True, help="output .html", action=Output)

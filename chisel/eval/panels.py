@@ -5,10 +5,12 @@ Split out of :mod:`chisel.eval.report` (which re-exports these names).
 
 from __future__ import annotations
 
+import base64
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -32,6 +34,14 @@ PANEL_DEPTH_KEYS: tuple[str, ...] = (
 
 PANEL_IMAGE_KEYS: tuple[str, ...] = ("rgb", *PANEL_DEPTH_KEYS, "change_mask")
 """Every image of a panel, in display order."""
+
+
+def png_data_uri(rgb: np.ndarray) -> str:
+    """(H, W, 3) uint8 RGB -> ``data:image/png;base64,...``."""
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise InvalidInputError("image", "PNG encoding failed")
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
 
 
 @dataclass(frozen=True)

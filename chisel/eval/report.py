@@ -12,13 +12,15 @@ is a plotly ``Mesh3d`` of decimated meshes. Sections, each shown when its input 
 - per-step panels like the paper's Figure 4: frame RGB, preoperative depth, GT depth,
   estimated depth, updated-model depth (one shared colour range per panel) and the change
   mask; stored in a *panels file* (npz, see :func:`write_panels`);
+- the updated CT: axial and coronal slices through the change box per step, preoperative,
+  true and each method's updated CT, removed region outlined, updated-CT Dice beside
+  (:mod:`chisel.eval.ct_slices`: window, orientation and outlines);
 - the preoperative and updated meshes in 3D, the updated mesh coloured by its distance to
   the preoperative surface (removed tissue stands out above ``removed_threshold_mm``).
 """
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import logging
@@ -37,6 +39,7 @@ import trimesh
 
 from chisel.core.atomic import atomic_write_text
 from chisel.core.errors import InvalidInputError
+from chisel.eval.ct_slices import CT_SLICES_CSS, CtSlice, ct_slices_html
 from chisel.eval.metrics import (
     RoiBox,
 )
@@ -47,6 +50,7 @@ from chisel.eval.panels import (  # noqa: F401 - re-exported: the panels moved t
     PANELS_VERSION,
     StepPanel,
     make_step_panel,
+    png_data_uri,
     read_panels,
     write_panels,
 )
@@ -149,14 +153,6 @@ def colorize_mask(mask: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
     out = base.copy()
     out[mask] = (np.array([255, 40, 40]) * 0.8 + base[mask] * 0.2).astype(np.uint8)
     return out
-
-
-def png_data_uri(rgb: np.ndarray) -> str:
-    """(H, W, 3) uint8 RGB -> ``data:image/png;base64,...``."""
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise InvalidInputError("image", "PNG encoding failed")
-    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
 
 
 def _colorbar_png(vmin_mm: float, vmax_mm: float, width: int = 256) -> str:
@@ -459,6 +455,7 @@ def build_report_html(
     meshes: ReportMeshes | None = None,
     sweeps: Mapping[str, SweepTable] | None = None,
     title: str = "Endoscopic Chisel: evaluation report",
+    ct_slices: Sequence[CtSlice] = (),
 ) -> str:
     """The report as one HTML string (plotly.js embedded; no external resource)."""
     validate_metrics(metrics, "metrics")
@@ -487,13 +484,16 @@ def build_report_html(
     if panels:
         parts.append("<h2>Per-step panels</h2>")
         parts += [panel_html(p) for p in sorted(panels, key=lambda p: (p.step, p.frame_index))]
+    if ct_slices:
+        parts.append("<h2>Updated CT through the change box</h2>")
+        parts.append(ct_slices_html(ct_slices))
     if meshes is not None:
         parts.append("<h2>3D model</h2>")
         parts.append(_fig_html(mesh_figure(meshes), "fig-meshes"))
     body = "\n".join(parts)
     return (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
-        f"<title>{html.escape(title)}</title><style>{_CSS}</style>\n"
+        f"<title>{html.escape(title)}</title><style>{_CSS}{CT_SLICES_CSS}</style>\n"
         f"<script type='text/javascript'>{plotly.offline.get_plotlyjs()}</script>\n"
         f"</head><body>\n{body}\n</body></html>\n"
     )
@@ -506,9 +506,10 @@ def write_report(
     meshes: ReportMeshes | None = None,
     sweeps: Mapping[str, SweepTable] | None = None,
     title: str = "Endoscopic Chisel: evaluation report",
+    ct_slices: Sequence[CtSlice] | None = None,
 ) -> Path:
     """Write the self-contained HTML report (atomically); returns its path."""
-    text = build_report_html(metrics, panels or (), meshes, sweeps, title)
+    text = build_report_html(metrics, panels or (), meshes, sweeps, title, ct_slices or ())
     size = len(text.encode("utf-8"))
     if size > SIZE_WARNING_BYTES:
         log.warning("report is %.1f MB; lower ReportMeshes.max_faces", size / 2**20)

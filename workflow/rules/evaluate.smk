@@ -132,6 +132,7 @@ rule report:
         updated=f"{RESULTS}/seed_{SEEDS[0]}/base/updated/step_{BITES:02d}/mesh.ply",
         manifest=f"{RESULTS}/seed_{SEEDS[0]}/phantom/phantom.json",
         sweeps=lambda wc: list(report_sweeps(wc).values()),
+        ct_slices=expand(f"{RESULTS}/seed_{SEEDS[0]}/base/export/step_{{step}}_slices.npz", step=[step_str(s) for s in STEPS]),
     output:
         html=f"{RESULTS}/report.html",
     log:
@@ -147,6 +148,7 @@ rule report:
         "print(','.join(str(v) for c in b for v in c))\" {input.manifest}) && "
         "python -m chisel report --metrics {input.metrics} --panels {input.panels} "
         "--preop-mesh {input.preop} --updated-mesh {input.updated} --roi=$ROI "
+        "--ct-slices {input.ct_slices} "
         "$( [ -n '{params.sweeps}' ] && echo --sweep {params.sweeps} ) "
         "--title '{params.title}' --out {output.html} > {log} 2>&1"
 

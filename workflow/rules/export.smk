@@ -4,17 +4,22 @@
 EXPORT_METHODS = list(config["methods"])
 
 
-def export_model(wc):
-    if wc.method == "no_update":
-        return f"{RESULTS}/seed_{wc.seed}/preop/model.npz"
-    return f"{RESULTS}/seed_{wc.seed}/base/{wc.method}/step_{wc.step}/model.npz"
-
-
 rule export_ct:
-    """The preoperative HU CT with the tissue the method's model removed set to air."""
+    """The preoperative HU CT with the tissue the method's update removed set to air
+    (--preop-model: CT detail the preoperative model could not hold is kept)."""
     input:
         manifest=rules.phantom.output.manifest,
-        model=export_model,
+        # no_update: the preop model itself; else the method's model after the step
+        model=lambda wc: (
+            f"{RESULTS}/seed_{wc.seed}/preop/model.npz"
+            if wc.method == "no_update"
+            else f"{RESULTS}/seed_{wc.seed}/base/{wc.method}/step_{wc.step}/model.npz"
+        ),
+        # the preoperative model the method's updates started from (its own build)
+        preop=lambda wc: (
+            f"{RESULTS}/seed_{wc.seed}/preop/"
+            + ("model_sweep.npz" if wc.method == "updated_sweep" else "model.npz")
+        ),
     output:
         ct=f"{RESULTS}/seed_{{seed}}/base/export/{{method}}/step_{{step}}_hu.nii.gz",
     log:
@@ -28,12 +33,13 @@ rule export_ct:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel export-ct --model {input.model} "
+        "python -m chisel export-ct --model {input.model} --preop-model {input.preop} "
         "--ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz --out {output.ct} > {log} 2>&1"
 
 
 rule ct_dice:
-    """Updated-CT Dice of the removed region, every method, one step."""
+    """Updated-CT Dice of the removed region, every method, one step, and the report's
+    axial and coronal slices through the change box (before, truth, each method)."""
     input:
         manifest=rules.phantom.output.manifest,
         cts=lambda wc: [
@@ -41,7 +47,8 @@ rule ct_dice:
             for m in EXPORT_METHODS
         ],
     output:
-        f"{RESULTS}/seed_{{seed}}/base/export/step_{{step}}.json",
+        dice=f"{RESULTS}/seed_{{seed}}/base/export/step_{{step}}.json",
+        slices=f"{RESULTS}/seed_{{seed}}/base/export/step_{{step}}_slices.npz",
     log:
         f"{RESULTS}/logs/seed_{{seed}}/export/dice_step_{{step}}.log",
     wildcard_constraints:
@@ -51,6 +58,8 @@ rule ct_dice:
     threads: 1
     conda:
         ENV
+    resources:
+        mem_mb=MEM_MB,
     script:
         "../scripts/ct_dice.py"
 
