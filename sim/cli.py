@@ -135,6 +135,7 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
         phantom_args=args.phantom_args,
         resume=args.resume,
         progress=not args.quiet,
+        command=["python", "-m", "sim", *args.argv],
     )
     logging.getLogger("sim").info(
         "dataset: %d sequences, %d frames in %s", ds["num_sequences"], ds["num_frames"], args.out
@@ -261,6 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded in dataset cards
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",

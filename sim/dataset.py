@@ -8,6 +8,8 @@ direct lighting). Layout::
 
     DIR/dataset.json            format, version, sequences [{path, phantom_seed, kind, step,
                                 num_frames}], seeds, config
+    DIR/dataset_card.json       what reproduces it: command, seeds, ranges and the values drawn
+                                per seed, counts, the split by phantom seed, format version
     DIR/phantoms/seed_S/        the generated phantom
     DIR/seed_S/                 a render folder (render.json, preop/, step_01/, ...)
 
@@ -38,6 +40,86 @@ log = logging.getLogger(__name__)
 
 DATASET_FORMAT = "endoscopic-chisel/dataset"
 DATASET_VERSION = 1
+CARD_FORMAT = "endoscopic-chisel/dataset-card"
+CARD_VERSION = 1
+SPLIT_FRACTIONS = {"train": 0.8, "val": 0.1, "test": 0.1}
+"""Split by phantom seed: a seed's sequences never straddle two parts."""
+
+
+def split_by_seed(seeds: list[int]) -> dict[str, list[int]]:
+    """Train/val/test by phantom seed: the seeds in order, the last 10 % (at least one when
+    there are 3 or more) test, the 10 % before them val, the rest train."""
+    ordered = sorted(int(s) for s in seeds)
+    n = len(ordered)
+    n_test = max(1, round(SPLIT_FRACTIONS["test"] * n)) if n >= 3 else 0
+    n_val = max(1, round(SPLIT_FRACTIONS["val"] * n)) if n >= 3 else 0
+    n_train = n - n_val - n_test
+    return {
+        "train": ordered[:n_train],
+        "val": ordered[n_train : n_train + n_val],
+        "test": ordered[n_train + n_val :],
+    }
+
+
+_DRAWN_KEYS = (
+    "appearance.albedo_rgb",
+    "appearance.vessel_strength",
+    "appearance.roughness",
+    "appearance.specular",
+    "light.intensity",
+    "imaging.exposure",
+    "imaging.shot_noise",
+    "imaging.read_noise",
+    "tools.fraction",
+    "smoke.density_per_mm",
+    "blur.shutter",
+    "lens.smear_probability",
+)
+
+
+def dataset_card(
+    dataset: dict[str, Any], command: list[str] | None, renders: dict[int, dict[str, Any]]
+) -> dict[str, Any]:
+    """The card of a dataset: everything needed to render it again and to use it.
+
+    renders : phantom seed -> that seed's render.json (its config holds the drawn values).
+    """
+    drawn = {}
+    for seed, header in sorted(renders.items()):
+        flat = _flat(header["config"])
+        drawn[str(seed)] = {"render_seed": flat["seed"], **{k: flat[k] for k in _DRAWN_KEYS}}
+    per_kind: dict[str, dict[str, int]] = {}
+    for e in dataset["sequences"]:
+        c = per_kind.setdefault(e["kind"], {"sequences": 0, "frames": 0})
+        c["sequences"] += 1
+        c["frames"] += e["num_frames"]
+    cfg = dataset["config"]
+    return {
+        "format": CARD_FORMAT,
+        "version": CARD_VERSION,
+        "dataset_format": {"format": DATASET_FORMAT, "version": DATASET_VERSION},
+        "sequence_format": "chisel.io.sequence (docs/sim.md: render folder)",
+        "command": command,
+        "reproduce": "run `command` again (same code version): every draw derives from the "
+        "phantom seeds, the master seed and the config below",
+        "phantom_seeds": dataset["seeds"],
+        "master_seed": cfg["seed"],
+        "bites": dataset["bites"],
+        "ranges": cfg["randomization"],
+        "effects_base": {k: cfg[k] for k in ("tools", "smoke", "blur", "lens", "cut")},
+        "drawn": drawn,
+        "counts": {
+            "phantoms": len(dataset["seeds"]),
+            "sequences": dataset["num_sequences"],
+            "frames": dataset["num_frames"],
+            "by_kind": per_kind,
+            "frames_with_tools_enabled": bool(cfg["tools"]["enabled"]),
+        },
+        "split": split_by_seed(dataset["seeds"]),
+        "split_rule": "by phantom seed, sorted: last 10 % test, the 10 % before val, rest train",
+        "image": {"width": cfg["camera"]["width"], "height": cfg["camera"]["height"]},
+        "config": cfg,
+    }
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -159,12 +241,14 @@ def build_dataset(
     phantom_args: str = "",
     resume: bool = False,
     progress: bool = True,
+    command: list[str] | None = None,
 ) -> dict[str, Any]:
     """Generate and render every seed; write and return ``dataset.json``'s content.
 
     ``cfg.randomization`` ranges are sampled once per phantom seed (randomisation is
     switched on here whatever ``cfg.randomization.enabled`` says), with the render seed
-    :func:`render_seed` of the phantom seed and ``cfg.seed``.
+    :func:`render_seed` of the phantom seed and ``cfg.seed``. ``dataset_card.json``
+    (:func:`dataset_card`) is written with ``dataset.json``; ``command`` is recorded in it.
     """
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -174,6 +258,7 @@ def build_dataset(
         cfg, randomization=dataclasses.replace(cfg.randomization, enabled=True)
     )
     entries: list[dict[str, Any]] = []
+    renders: dict[int, dict[str, Any]] = {}
     for seed in tqdm(seeds, desc="dataset", unit="phantom", disable=not progress):
         render_dir = out / f"seed_{seed}"
         header_path = render_dir / "render.json"
@@ -186,6 +271,7 @@ def build_dataset(
             header = render_phantom(
                 phantom_dir, render_dir, seq_cfg, include_eval=False, progress=progress
             )
+        renders[int(seed)] = header
         names = [("preop", 0, header["sequences"]["preop"])] + [
             ("intraop", int(k), v)
             for k, v in sorted(header["sequences"]["steps"].items(), key=lambda kv: int(kv[0]))
@@ -211,5 +297,7 @@ def build_dataset(
         "sequences": entries,
         "config": config_to_dict(cfg),
     }
+    card = dataset_card(json.loads(json.dumps(dataset)), command, renders)
+    atomic_write_text(out / "dataset_card.json", json.dumps(card, indent=2) + "\n")
     atomic_write_text(out / "dataset.json", json.dumps(dataset, indent=2) + "\n")
     return dataset

@@ -366,7 +366,9 @@ class MeshRenderer:
         z = jit_z_depth(self.mi, self._depth_scene, self._dirs_cam, T)
         return np.array(z, dtype=np.float32).reshape(len(T), *self.camera.shape)
 
-    def _depth_via_sensor(self, T_world_from_cam: np.ndarray, scene: object) -> np.ndarray:
+    def _depth_via_sensor(
+        self, T_world_from_cam: np.ndarray, scene: object | None = None
+    ) -> np.ndarray:
         """Depth from the sensor's ``depth`` AOV (scalar_rgb has no vectorised ray queries).
 
         A 1-spp stratified sampler without jitter puts the one sample at the pixel centre;
@@ -390,7 +392,12 @@ class MeshRenderer:
             mitsuba_to_world(T_world_from_cam)
         )
         self._depth_sensor_params.update()
-        img = mi.render(scene, sensor=self._depth_sensor, integrator=self._depth_integrator, spp=1)
+        img = mi.render(
+            self._depth_scene if scene is None else scene,
+            sensor=self._depth_sensor,
+            integrator=self._depth_integrator,
+            spp=1,
+        )
         aov = np.array(img, dtype=np.float32)[..., -1]
         z_grid = z_depth_from_mitsuba_depth(aov, self._depth_grid, self.cfg.camera.near_clip_mm)
         z = remap_to_camera(np.nan_to_num(z_grid, nan=0.0), self._depth_grid, nearest=True)
