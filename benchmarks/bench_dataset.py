@@ -1,0 +1,104 @@
+"""End-to-end speed of ``sim dataset`` against the renderer's own RGB-D frame rate.
+
+Goal (issue 22): ``sim dataset`` end to end (phantom, render, encode, write) at >= 0.6x
+the renderer's own RGB-D frame rate measured in the same run (everything around rendering
+<= 40 %). Both are measured here, one after the other, at the same image size and spp:
+
+- ``render_rgbd_fps``: ``MeshRenderer.render`` alone on the first phantom's step-1 mesh,
+  along its intraoperative path (no phantom generation, no PNG/npy encoding, no writing);
+- ``dataset_fps``: frames written / wall time of ``build_dataset`` over ``--seeds``
+  (phantom generation in a subprocess, texture baking, path planning, rendering, encoding
+  and atomic writes included).
+
+Usage: python benchmarks/bench_dataset.py [--seeds 0-1] [--frames 40] [--width 320]
+       [--height 256] [--spp 16] [--phantom-cmd "python -m sim.synthetic"] [--tools]
+
+Without ``--phantom-cmd`` the phantoms are the toy of :mod:`sim.synthetic` (quick); pass
+``"python -m phantoms generate"`` for the anatomy generator. Prints ``name: value`` lines,
+``cpu_simd`` among them and ``dataset_vs_render_ratio`` last. Figures taken while other
+processes share the CPU are not figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_render import cpu_simd  # noqa: E402
+
+from sim.appearance import texture_volume  # noqa: E402
+from sim.config import SimConfig, replace_in  # noqa: E402
+from sim.dataset import build_dataset, parse_seeds  # noqa: E402
+from sim.phantom import load_mesh, load_phantom  # noqa: E402
+from sim.pipeline import _texture_box, drawn_config, plan_sequences  # noqa: E402
+from sim.render import MeshRenderer  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", default="0-1", help="phantom seeds (default 0-1)")
+    p.add_argument("--frames", type=int, default=40, help="frames per intraoperative step")
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--height", type=int, default=256)
+    p.add_argument("--spp", type=int, default=16)
+    p.add_argument("--bites", type=int, default=1)
+    p.add_argument("--phantom-cmd", default=f"{sys.executable} -m sim.synthetic")
+    p.add_argument("--tools", action="store_true", help="instruments in view")
+    args = p.parse_args(argv)
+    if args.frames < 1 or args.spp < 1:
+        p.error("--frames and --spp must be >= 1")
+    seeds = parse_seeds(args.seeds)
+    cfg = replace_in(
+        SimConfig(),
+        **{
+            "camera.width": args.width,
+            "camera.height": args.height,
+            "imaging.spp": args.spp,
+            "paths.intraop_frames": args.frames,
+            "paths.preop_frames": args.frames,
+            "tools.enabled": args.tools,
+        },
+    )
+    tmp = Path(tempfile.mkdtemp(prefix="bench_dataset_"))
+    try:
+        t0 = time.perf_counter()
+        ds = build_dataset(
+            tmp / "ds", seeds, cfg, bites=args.bites, phantom_cmd=args.phantom_cmd, progress=False
+        )
+        wall = time.perf_counter() - t0
+        dataset_fps = ds["num_frames"] / wall
+        # The renderer alone, on the first phantom's step-1 mesh, same drawn config.
+        phantom = load_phantom(tmp / "ds/phantoms" / f"seed_{seeds[0]}")
+        meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
+        rcfg = drawn_config(
+            replace_in(cfg, seed=seeds[0], **{"randomization.enabled": True, "paths.eval_poses": 1})
+        )
+        planned = [q for q in plan_sequences(phantom, meshes, rcfg, False) if q.kind == "intraop"]
+        tex = texture_volume(_texture_box(meshes[0]), rcfg.appearance, rcfg.seed)
+        r = MeshRenderer(meshes[planned[0].step], rcfg, tex)
+        poses = planned[0].true_poses
+        r.render(poses[0], index=0, seed=1)  # compile the kernels
+        t0 = time.perf_counter()
+        for i in range(len(poses)):
+            r.render(poses[i], index=i, seed=1)
+        render_fps = len(poses) / (time.perf_counter() - t0)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f"variant: {r.variant}")
+    print(f"cpu_simd: {cpu_simd()}")
+    print(f"image: {args.width}x{args.height}, spp {args.spp}, tools {args.tools}")
+    print(f"dataset_frames: {ds['num_frames']}")
+    print(f"dataset_wall_s: {wall:.2f}")
+    print(f"render_rgbd_fps: {render_fps:.2f}")
+    print(f"dataset_fps: {dataset_fps:.2f}")
+    print(f"dataset_vs_render_ratio: {dataset_fps / render_fps:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
