@@ -11,6 +11,7 @@ rule render:
             f"--preop-frames {RC['preop_frames']} --eval-poses {RC['eval_poses']} "
             f"--spp {RC.get('spp', 16)} --pose-noise-mm {RC.get('pose_noise_mm', 0.0)} "
             f"--pose-noise-deg {RC.get('pose_noise_deg', 0.0)}"
+            + (" --tools" if RC.get("tools", False) else "")
         ),
     threads: 2
     conda:
