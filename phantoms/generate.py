@@ -49,6 +49,7 @@ from phantoms.io import (
 from phantoms.params import PARAM_RANGES, PhantomConfig, sample_params
 from phantoms.path import airway_path
 from phantoms.procedures import Fragment, cut_steps, plan_allowed_region, plan_procedure
+from phantoms.roi import change_box
 
 log = logging.getLogger(__name__)
 
@@ -166,15 +167,6 @@ def build_phantom(
     bites = [f.bites[0] for f in fragments if f.bites]
     note("bites")
 
-    roi_lo = (
-        np.min([np.asarray(r.removed.bounding_box()[:3]) for r in results], axis=0)
-        - config.roi_margin_mm
-    )
-    roi_hi = (
-        np.max([np.asarray(r.removed.bounding_box()[3:]) for r in results], axis=0)
-        + config.roi_margin_mm
-    )
-
     clip = clip_distance_mm(config.spacing_mm, config.mucosa_mm)
     grid = grid_for_block(
         anatomy.block_min_mm,
@@ -238,6 +230,15 @@ def build_phantom(
         )
         note(f"step {k} volumes")
     assert path is not None
+    roi_lo, roi_hi, _ = change_box(
+        anatomy.tissue,
+        results[-1].tissue,
+        path[-1],
+        np.asarray(target.center_mm),
+        np.asarray(target.normal),
+        config.roi_margin_mm,
+    )
+    note("change box")
     return Phantom(
         config=config,
         params=params,
@@ -383,7 +384,7 @@ def generate(
     :class:`~phantoms.errors.OutputError`.
     """
     check_output_dir(out_dir)
-    total = 3 + 2 * ((config.n_bites if bites is None else len(bites)) + 1)
+    total = 4 + 2 * ((config.n_bites if bites is None else len(bites)) + 1)
     bar = None
     if show_progress:
         from tqdm import tqdm

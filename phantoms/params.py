@@ -67,8 +67,8 @@ PARAM_RANGES: dict[str, tuple[float, float, str]] = {
     "st_length_mm": (15.0, 20.0, "superior turbinate length (+y)"),
     # uncinate process (wall of the infundibulum)
     "uncinate_thickness_mm": (0.7, 1.5, "uncinate process thickness (bony lamella)"),
-    "uncinate_radius_mm": (5.5, 7.5, "curvature radius of the uncinate (= infundibulum radius)"),
-    "uncinate_bulge_mm": (1.5, 2.5, "protrusion of the uncinate medially from the lateral wall"),
+    "uncinate_radius_mm": (7.5, 9.5, "curvature radius of the uncinate (= infundibulum radius)"),
+    "uncinate_bulge_mm": (3.0, 4.0, "protrusion of the uncinate medially from the lateral wall"),
     "uncinate_y_offset_mm": (
         -8.0,
         -3.0,
