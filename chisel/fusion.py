@@ -664,33 +664,80 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_m
     return status
 
 
-@numba.njit(cache=True)
-def _carve_apply(tsdf, weight, reset, use_reset, shape, A, rays, status, dz_unit, z0, z1):
+@numba.njit(parallel=True, cache=True)
+def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
+                 status, z0, z1, half_voxel_mm):  # fmt: skip
+    # Voxel-centric, like the fusion kernel: a voxel is set free when its centre projects
+    # (nearest pixel, lens distortion honoured) to a pixel whose ray deleted a layer and
+    # its depth lies in that layer. A ray-centric walk would free every voxel a changed
+    # ray merely grazes, eroding the rim of an opening by up to a voxel per view.
     H, W = status.shape
-    nx, ny, nz = shape[0], shape[1], shape[2]
-    n = 0
-    for v in range(H):
-        for u in range(W):
-            if status[v, u] != CARVE_DELETED:
-                continue
-            rx = rays[v, u, 0]
-            ry = rays[v, u, 1]
-            for layer in range(z0.shape[2]):
-                a = z0[v, u, layer]
-                b = z1[v, u, layer]
-                if not b > a:
-                    break
-                z = a
-                while z < b:
-                    idx = _voxel_at(A, z, rx, ry, nx, ny, nz)
-                    if idx >= 0 and tsdf[idx] < 1.0:
-                        tsdf[idx] = 1.0
-                        weight[idx] = 1.0
-                        if use_reset:
-                            reset[idx] = 1
-                        n += 1
-                    z += dz_unit[v, u]
-    return n
+    ny, nz = shape[1], shape[2]
+    k1_, k2_, p1_, p2_, k3_ = dist[0], dist[1], dist[2], dist[3], dist[4]
+    distorted = (k1_ != 0.0) or (k2_ != 0.0) or (p1_ != 0.0) or (p2_ != 0.0) or (k3_ != 0.0)
+    n_layers = z0.shape[2]
+    counts = np.zeros(hi[0] - lo[0], dtype=np.int64)
+    for ii in numba.prange(hi[0] - lo[0]):
+        i = lo[0] + ii
+        n = 0
+        for j in range(lo[1], hi[1]):
+            for k in range(lo[2], hi[2]):
+                zc = R[2, 0] * i + R[2, 1] * j + R[2, 2] * k + t[2]
+                if zc <= 1e-3:
+                    continue
+                xc = (R[0, 0] * i + R[0, 1] * j + R[0, 2] * k + t[0]) / zc
+                yc = (R[1, 0] * i + R[1, 1] * j + R[1, 2] * k + t[1]) / zc
+                r2 = xc * xc + yc * yc
+                if r2 > r2_max:
+                    continue
+                if distorted:
+                    radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_))
+                    xd = xc * radial + 2.0 * p1_ * xc * yc + p2_ * (r2 + 2.0 * xc * xc)
+                    yd = yc * radial + p1_ * (r2 + 2.0 * yc * yc) + 2.0 * p2_ * xc * yc
+                else:
+                    xd = xc
+                    yd = yc
+                uf = fx * xd + cx + 0.5
+                vf = fy * yd + cy + 0.5
+                if uf < 0.0 or vf < 0.0:
+                    continue
+                u = int(uf)
+                v = int(vf)
+                if u >= W or v >= H or status[v, u] != CARVE_DELETED:
+                    continue
+                for layer in range(n_layers):
+                    za = z0[v, u, layer]
+                    zb = z1[v, u, layer]
+                    if not zb > za:
+                        break
+                    if za - half_voxel_mm <= zc < zb:
+                        idx = (i * ny + j) * nz + k
+                        if tsdf[idx] < 1.0:
+                            tsdf[idx] = 1.0
+                            weight[idx] = 1.0
+                            if use_reset:
+                                reset[idx] = 1
+                            n += 1
+                        break
+        counts[ii] = n
+    return counts.sum()
+
+
+def _deleted_voxel_box(
+    model: TsdfModel, rays: np.ndarray, T_voxel_from_cam: np.ndarray, status: np.ndarray,
+    z0: np.ndarray, z1: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Index box [lo, hi) of the voxels that the deleted layers can reach, or None."""
+    sel = status == CARVE_DELETED
+    if not sel.any():
+        return None
+    r = rays[sel]
+    ends = [r * z0[sel][:, :1], r * z1[sel].max(axis=1, keepdims=True)]
+    P = np.concatenate(ends) @ T_voxel_from_cam[:3, :3].T + T_voxel_from_cam[:3, 3]
+    shape = np.array(model.shape)
+    lo = np.clip(np.floor(P.min(axis=0)).astype(np.int64) - 1, 0, shape)
+    hi = np.clip(np.ceil(P.max(axis=0)).astype(np.int64) + 2, 0, shape)
+    return (lo, hi) if np.all(hi > lo) else None
 
 
 def carve_first_layer(
@@ -744,5 +791,15 @@ def carve_first_layer(
     if use_reset and (reset.shape != model.shape or reset.dtype != np.uint8):
         raise InvalidInputError("reset", f"expected {model.shape} uint8, got {reset.shape}")
     r = _flat(reset, "reset") if use_reset else np.zeros(1, np.uint8)
-    n = _carve_apply(tsdf, weight, r, use_reset, shape, A, rays, status, dz_unit, z0, z1)
+    T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
+    box = _deleted_voxel_box(model, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
+    if box is None:
+        return status, 0
+    n = _carve_apply(
+        tsdf, weight, r, use_reset, shape, box[0], box[1],
+        np.ascontiguousarray(T_cam_from_voxel[:3, :3]), np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
+        camera.fx, camera.fy, camera.cx, camera.cy,
+        np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
+        status, z0, z1, 0.5 * float(model.voxel_size_mm),
+    )  # fmt: skip
     return status, int(n)
