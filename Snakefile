@@ -13,6 +13,7 @@ include: "workflow/rules/phantom.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/preop.smk"
 include: "workflow/rules/update.smk"
+include: "workflow/rules/change_aware.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/export.smk"
 

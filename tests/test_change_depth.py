@@ -223,8 +223,9 @@ def _plane(z_mm: float) -> trimesh.Trimesh:
 
 def test_prior_pairs_label_removed_tissue_not_tracking_error(tmp_path: Path) -> None:
     """Step 1 removes the wall at z = 20 (the next surface is at z = 26); tracking is off by
-    0.3 mm along z. The prior is the step-0 wall at the tracked pose; the label marks the
-    change from the true pose only, so the preop sweep has none despite the tracking error."""
+    0.3 mm along z. The prior is the step-0 wall at the tracked pose; the target is step 1's
+    surface at the tracked pose (default) or the true depth; either way the label marks
+    removed tissue only, so the preop sweep has none despite the tracking error."""
     phantom = tmp_path / "phantoms" / "seed_1000"
     (phantom / "meshes").mkdir(parents=True)
     _plane(20.0).export(phantom / "meshes" / "step_00.ply")
@@ -241,11 +242,17 @@ def test_prior_pairs_label_removed_tissue_not_tracking_error(tmp_path: Path) -> 
                 w.add(Frame(i, tracked, rgb=np.full((H, W, 3), 90, np.uint8),
                             depth_mm=np.full((H, W), z, np.float32), T_world_from_cam_true=true))  # fmt: skip
     refs = [StepSequenceRef(tmp_path / f"step_{k}", 1000, k, phantom) for k in (0, 1)]
-    pairs = build_prior_set(refs)
-    assert len(pairs) == 4
-    assert np.allclose(pairs.prior_mm.numpy(), 20.0 - 0.3, atol=1e-3)  # the tracked pose's render
-    assert not pairs.changed[:2].any() and pairs.changed[2:].all()
-    assert np.allclose(pairs.target_mm[2:].numpy(), 26.0)
+    for target_pose, step1_target in (("tracked", 26.0 - 0.3), ("true", 26.0)):
+        pairs = build_prior_set(refs, target_pose=target_pose)
+        assert len(pairs) == 4
+        # The prior is always the step-0 wall at the tracked pose.
+        assert np.allclose(pairs.prior_mm.numpy(), 20.0 - 0.3, atol=1e-3)
+        assert not pairs.changed[:2].any() and pairs.changed[2:].all()
+        assert np.allclose(pairs.target_mm[2:].numpy(), step1_target, atol=1e-3)
+        assert np.allclose(pairs.true_mm[2:].numpy(), 26.0)
+    # Tracked target: the preop frames' target is the prior itself (no change).
+    pairs = build_prior_set(refs[:1])
+    assert np.allclose(pairs.target_mm.numpy(), pairs.prior_mm.numpy())
 
 
 class _RecordingPrior:

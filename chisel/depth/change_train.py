@@ -52,6 +52,9 @@ class PriorSet:
     true pose by more than the change threshold (tissue removed at this pixel)."""
     sources: list[str]
     """``"<sequence folder>#<frame>"`` per frame."""
+    true_mm: torch.Tensor | None = None
+    """(N, H, W) float32 the frames' true depth (true pose), mm, NaN = invalid, when known
+    (reporting only; the target may be the tracked-pose render instead)."""
 
     def __len__(self) -> int:
         return int(self.rgb.shape[0])
@@ -67,13 +70,6 @@ class PriorSet:
             raise InvalidInputError(
                 "PriorSet.rgb", f"shape {tuple(self.rgb.shape)} != {(n, h, w, 3)}"
             )
-
-    def subset(self, idx: list[int]) -> PriorSet:
-        t = torch.as_tensor(idx, dtype=torch.long)
-        return PriorSet(
-            self.rgb[t], self.prior_mm[t], self.target_mm[t], self.changed[t],
-            [self.sources[i] for i in idx],
-        )  # fmt: skip
 
 
 @dataclass(frozen=True)

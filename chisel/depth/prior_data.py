@@ -2,10 +2,20 @@
 
 For every frame of a surgical step k the *prior* is the previous step's surface (step
 k-1's mesh; step 0's for the preoperative sweep, which has no change) rendered at the
-frame's **tracked** pose, so the network learns to live with tracking error; the target
-is the frame's true depth. The change label marks pixels whose true depth lies deeper than
-the previous surface rendered at the **true** pose by more than ``threshold_mm``
-(removed tissue; tracking error alone never sets it).
+frame's **tracked** pose, so the network learns to live with tracking error (the image
+is taken from the true pose, the render from the tracked one). Two targets:
+
+- ``target_pose="tracked"`` (default): step k's surface rendered at the **tracked** pose,
+  i.e. what the model's render should become once the change is carved. The updater
+  compares and fuses the estimate at the tracked pose, so this is the depth it needs:
+  unchanged tissue is exactly the prior, removed tissue deeper. The label is
+  ``target - prior > threshold_mm``, exact.
+- ``target_pose="true"``: the frame's rendered true depth (true pose). With the
+  simulator's default tracking error (0.5 mm / 0.5 deg hand-eye plus jitter) the prior
+  differs from it by ~4 % (median) on unchanged tissue, which one frame cannot reveal;
+  the label is then "true depth deeper than step k-1's surface seen from the true pose".
+
+``PriorSet.true_mm`` always holds the frame's true depth (for reporting).
 
 Inputs follow the dataset layout of ``python -m sim dataset`` (read as files only:
 ``chisel`` never imports ``sim`` or ``phantoms``)::
@@ -26,6 +36,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -135,13 +146,16 @@ def build_prior_set(
     frame_step: int = 1,
     threshold_mm: float = CHANGE_THRESHOLD_MM,
     min_valid_fraction: float = 0.05,
+    target_pose: Literal["tracked", "true"] = "tracked",
 ) -> PriorSet:
     """Render every ``frame_step``-th frame's prior and change label; see the module doc.
 
     Frames whose prior and target overlap on fewer than ``min_valid_fraction`` of the
     pixels are skipped. Every sequence must share one image size.
     """
-    rgbs, priors, targets, labels, sources = [], [], [], [], []
+    if target_pose not in ("tracked", "true"):
+        raise InvalidInputError("target_pose", f"expected 'tracked' or 'true', got {target_pose!r}")
+    rgbs, priors, targets, labels, trues, sources = [], [], [], [], [], []
     shape: tuple[int, int] | None = None
     for ref in refs:
         seq = Sequence(ref.path)
@@ -160,20 +174,32 @@ def build_prior_set(
         rc = MeshRaycaster(mesh.vertices, mesh.faces)
         idx = _frame_indices(len(seq), frame_step)
         prior = rc.render_depths(seq.camera, seq.poses[idx])
-        prior_true = rc.render_depths(seq.camera, seq.true_poses[idx])
+        if target_pose == "true":
+            reference = rc.render_depths(seq.camera, seq.true_poses[idx])
+        else:
+            now = phantom_step_mesh(ref.phantom_dir, ref.step)
+            reference = prior
+            tracked_now = MeshRaycaster(now.vertices, now.faces).render_depths(
+                seq.camera, seq.poses[idx]
+            )
         for j, i in enumerate(idx):
-            target = _valid_target(seq, i)
+            true = _valid_target(seq, i)
+            if target_pose == "true":
+                target = true
+            else:
+                target = np.where(np.isfinite(true), tracked_now[j], np.float32(np.nan))
             both = np.isfinite(prior[j]) & np.isfinite(target)
             if both.mean() < min_valid_fraction:
                 continue
             with np.errstate(invalid="ignore"):
                 changed = np.isfinite(target) & (
-                    ~np.isfinite(prior_true[j]) | (target - prior_true[j] > threshold_mm)
+                    ~np.isfinite(reference[j]) | (target - reference[j] > threshold_mm)
                 )
             rgbs.append(seq.rgb(i))
             priors.append(prior[j])
-            targets.append(target)
+            targets.append(target.astype(np.float32))
             labels.append(changed & np.isfinite(prior[j]))
+            trues.append(true)
             sources.append(f"{ref.path}#{i}")
     if not rgbs:
         raise EmptyResultError(f"no usable frame in {len(refs)} sequence(s)")
@@ -184,23 +210,30 @@ def build_prior_set(
         target_mm=torch.from_numpy(np.stack(targets).astype(np.float32)),
         changed=torch.from_numpy(np.stack(labels)),
         sources=sources,
+        true_mm=torch.from_numpy(np.stack(trues).astype(np.float32)),
     )
 
 
 def preop_prior_set(
-    sequence: Sequence, mesh: trimesh.Trimesh, frame_step: int = 1
+    sequence: Sequence,
+    mesh: trimesh.Trimesh,
+    frame_step: int = 1,
+    target_pose: Literal["tracked", "true"] = "tracked",
 ) -> tuple[PriorSet, str]:
     """Fine-tuning pairs from the preoperative sequence and the CT surface mesh.
 
-    Returns the pairs and what the target is: ``"ct-render-true-pose"`` (the sequence has
-    true poses) or ``"ct-render-tracked-pose"`` (real data: target = prior, no change).
+    target_pose : "tracked" (default, as :func:`build_prior_set`; also all real data has):
+    target = the CT render at the tracked pose = the prior (the sweep shows no change);
+    "true": the CT render at the true pose, where the sequence has true poses.
+    Returns the pairs and what the target is: ``"ct-render-true-pose"`` or
+    ``"ct-render-tracked-pose"``.
     """
     if not sequence.has_rgb:
         raise InvalidInputError(sequence.path, "fine-tuning needs the preop sequence's RGB")
     rc = MeshRaycaster(mesh.vertices, mesh.faces)
     idx = _frame_indices(len(sequence), frame_step)
     prior = rc.render_depths(sequence.camera, sequence.poses[idx])
-    if sequence.true_poses is not None:
+    if target_pose == "true" and sequence.true_poses is not None:
         target, what = (
             rc.render_depths(sequence.camera, sequence.true_poses[idx]),
             "ct-render-true-pose",
