@@ -21,6 +21,7 @@ import cv2
 import numba
 import numpy as np
 
+from chisel.core.config import check_fields
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
 
@@ -62,6 +63,7 @@ class ChangeConfig:
     the robust spread of M' - M_t (see :func:`frame_threshold`) (0 = off: fixed threshold)."""
 
     def __post_init__(self) -> None:
+        check_fields(self, "change")
         if not (np.isfinite(self.threshold_mm) and self.threshold_mm > 0):
             raise InvalidInputError("threshold_mm", f"must be > 0 mm, got {self.threshold_mm}")
         if not 0.0 <= self.min_agreement <= 1.0:

@@ -23,6 +23,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from chisel.core.config import check_fields
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import rotation_angle_deg, transform_points
 
@@ -81,6 +82,7 @@ class RegistrationConfig:
     """Seed of Open3D's random generator (RANSAC sampling): same seed, same result."""
 
     def __post_init__(self) -> None:
+        check_fields(self, "registration")
         if self.voxel_mm <= 0:
             raise InvalidInputError("voxel_mm", f"must be > 0, got {self.voxel_mm}")
         if not self.icp_max_dist_mm or min(self.icp_max_dist_mm) <= 0:

@@ -44,6 +44,7 @@ from chisel.change import (
     solve_scale,
     warp_depth,
 )
+from chisel.core.config import check_fields
 from chisel.core.errors import EmptyResultError, InvalidInputError, PoseError
 from chisel.core.geometry import (
     Camera,
@@ -153,6 +154,7 @@ class UpdateConfig:
     "no update" instead of stopping the run."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.max_points < 100 or self.sequence_points < 100:
             raise InvalidInputError("max_points", "use at least 100 points per frame")
         if self.carve not in ("deletion", "paper"):

@@ -164,3 +164,55 @@ def test_evaluate_refuses_a_negative_seed(
         capsys,
         "--seed: must be >= 0",
     )
+
+
+def test_update_reads_its_parameters_from_a_config_file(
+    files: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--config`` holds UpdateConfig's fields; a wrong key or kind is refused naming the
+    file and the dotted key, before anything else is read or written."""
+    base = ["update", "--model", str(files["model"]), "--sequence", str(files["seq"])]
+    base += ["--out", str(files["root"] / "u.npz")]
+    cfg = files["root"] / "update.yaml"
+    cfg.write_text("change:\n  threshold: 2.0\n")
+    refused(
+        [*base, "--config", str(cfg)], capsys, "update.yaml: change: unknown key(s) ['threshold']"
+    )
+    cfg.write_text("registration:\n  min_fitness: high\n")
+    refused([*base, "--config", str(cfg)], capsys, "registration.min_fitness: expected a number")
+    cfg.write_text("carve: sideways\n")
+    refused([*base, "--config", str(cfg)], capsys, "carve: expected one of deletion, paper")
+    assert not (files["root"] / "u.npz").exists()
+
+
+def test_update_flags_are_generated_from_the_config_fields() -> None:
+    import dataclasses
+
+    from chisel.cli import build_parser
+    from chisel.core.config import config_from_args, leaf_fields
+    from chisel.updater import UpdateConfig
+
+    parser = build_parser(["update"])
+    args = parser.parse_args(
+        ["update", "--model", "m", "--sequence", "s", "--out", "o.npz", "--min-views", "2",
+         "--no-registration", "--icp-max-dist-mm", "2", "1", "--carve", "paper"]
+    )  # fmt: skip
+    cfg = config_from_args(UpdateConfig, args)
+    assert (cfg.change.min_views, cfg.register, cfg.carve) == (2, False, "paper")
+    assert cfg.registration.icp_max_dist_mm == (2.0, 1.0)
+    # Every leaf field has its flag, and nothing else changed.
+    assert (
+        dataclasses.replace(
+            cfg,
+            change=UpdateConfig().change.__class__(
+                **{**dataclasses.asdict(cfg.change), "min_views": 5}
+            ),
+            registration=UpdateConfig().registration,
+            register=True,
+            carve="deletion",
+        )
+        == UpdateConfig()
+    )
+    text = parser._subparsers._group_actions[0].choices["update"].format_help()  # noqa: SLF001
+    for key, f, _ in leaf_fields(UpdateConfig):
+        assert "--" + f.name.replace("_", "-") in text, key

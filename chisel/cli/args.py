@@ -11,12 +11,12 @@ path-like arguments that exist, including the path in ``kind:PATH`` specs such a
 from __future__ import annotations
 
 import argparse
-import math
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from chisel.core.atomic import overlap
+from chisel.core.config import finite_float as finite_float  # re-exported: one home
 from chisel.core.errors import InvalidInputError
 
 Sidecar = Callable[[argparse.Namespace], Path | None]
@@ -106,15 +106,3 @@ def check_outputs(args: argparse.Namespace) -> None:
                         f"{o} lies inside the input folder {_option(dest)} {inp}: "
                         "write outputs outside the inputs",
                     )
-
-
-def finite_float(text: str) -> float:
-    """argparse ``type`` for a number option: NaN or inf would slip past every range check
-    (``nan < 0`` is false) and switch gates off silently."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value

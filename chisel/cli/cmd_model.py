@@ -175,47 +175,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         "change-aware:CHECKPOINT (frame + the model's render at the tracked pose -> mm)",
     )
     p.add_argument(
-        "--no-registration",
-        action="store_true",
-        help="ablation: no RANSAC/ICP, the estimate is only scaled to the model's render",
+        "--config",
+        type=Path,
+        default=None,
+        help="YAML file of update parameters (the fields of chisel.updater.UpdateConfig: "
+        "change: {...}, registration: {...} and the top-level ones); the flags below "
+        "override it, and what neither sets keeps its default",
     )
-    p.add_argument(
-        "--threshold-mm", type=finite_float, default=1.0, help="change threshold M' - M_t, mm (1.0)"
+    from chisel.core.config import add_config_arguments
+    from chisel.updater import UpdateConfig
+
+    group = p.add_argument_group(
+        "update parameters (generated from UpdateConfig, ChangeConfig and RegistrationConfig)"
     )
-    p.add_argument(
-        "--noise-k",
-        type=finite_float,
-        default=3.0,
-        help="per frame, raise the threshold to this many robust standard deviations of the "
-        "estimate's noise (3.0; 0 = the fixed threshold, as in the paper)",
-    )
-    p.add_argument(
-        "--min-views",
-        type=int,
-        default=5,
-        help="a changed pixel needs this many other frames of the step that see its old "
-        "surface and also see it removed (5; 0 = every frame trusted alone, as in the paper)",
-    )
-    p.add_argument(
-        "--min-agreement",
-        type=finite_float,
-        default=0.8,
-        help="... and at least this fraction of the frames that see it (0.8)",
-    )
-    p.add_argument(
-        "--tracking-accuracy-mm",
-        type=finite_float,
-        default=3.0,
-        help="the tracker's accuracy, hand-eye calibration included (3.0 mm): a step whose "
-        "hand-eye correction moves the camera further is not registered (tracked poses, "
-        "scale only) and the report says so",
-    )
-    p.add_argument(
-        "--tracking-accuracy-deg",
-        type=finite_float,
-        default=3.0,
-        help="the same for the correction's rotation (3.0 deg)",
-    )
+    add_config_arguments(group, UpdateConfig, aliases={"register": ("--registration",)})
     p.add_argument(
         "--ct",
         type=Path,
@@ -232,15 +205,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         "scale) to every estimate",
     )
     p.add_argument("--depth-noise-seed", type=int, default=0, help="seed of --depth-noise-mm")
-    p.add_argument(
-        "--min-fitness", type=finite_float, default=0.3, help="registration fitness floor"
-    )
-    p.add_argument("--seed", type=int, default=0, help="RANSAC seed")
-    p.add_argument(
-        "--allow-unused-step",
-        action="store_true",
-        help="when no frame registers, keep the model unchanged (and report it) instead of failing",
-    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_update)
 
@@ -408,33 +372,18 @@ class _NoisyDepth:
 
 
 def _cmd_update(args: argparse.Namespace) -> int:
-    from chisel.change import ChangeConfig
+    from chisel.core.config import config_from_args, load_config_file
     from chisel.depth_source import depth_source_from_spec
     from chisel.io.sequence import Sequence
     from chisel.model import TsdfModel
-    from chisel.registration import RegistrationConfig
     from chisel.updater import UpdateConfig, update_step
 
     if args.max_frames is not None and args.max_frames < 1:
         raise InvalidInputError("--max-frames", f"must be >= 1, got {args.max_frames}")
     if args.depth_noise_mm < 0:
         raise InvalidInputError("--depth-noise-mm", f"must be >= 0, got {args.depth_noise_mm}")
-    cfg = UpdateConfig(
-        change=ChangeConfig(
-            threshold_mm=args.threshold_mm,
-            noise_k=args.noise_k,
-            min_views=args.min_views,
-            min_agreement=args.min_agreement,
-        ),
-        registration=RegistrationConfig(
-            min_fitness=args.min_fitness,
-            seed=args.seed,
-            tracking_accuracy_mm=args.tracking_accuracy_mm,
-            tracking_accuracy_deg=args.tracking_accuracy_deg,
-        ),
-        register=not args.no_registration,
-        allow_unused_step=args.allow_unused_step,
-    )
+    base = UpdateConfig() if args.config is None else load_config_file(UpdateConfig, args.config)
+    cfg = config_from_args(UpdateConfig, args, base)
     model = TsdfModel.load(args.model)
     if args.ct is not None:
         if not model.ct_sha256:

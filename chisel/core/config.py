@@ -308,6 +308,18 @@ def _replace_path(obj: Any, parts: list[str], value: Any, key: str, error: type)
 
 
 # ------------------------------------------------------------------------------ argparse
+def finite_float(text: str) -> float:
+    """argparse ``type`` for a number option: NaN or inf would slip past every range check
+    (``nan < 0`` is false) and switch gates off silently."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
@@ -338,6 +350,7 @@ def add_config_arguments(
     parser: argparse.ArgumentParser | argparse._ArgumentGroup,
     cls: type,
     exclude: tuple[str, ...] = (),
+    aliases: dict[str, tuple[str, ...]] | None = None,
 ) -> None:
     """One ``--flag`` per leaf field of ``cls`` (nested dataclasses flattened; the flag is
     the field's own name, so names must be unique across the nesting), its help the
@@ -364,13 +377,15 @@ def add_config_arguments(
         elif typing.get_origin(base) is tuple:
             args = typing.get_args(base)
             kwargs["nargs"] = "+" if len(args) == 2 and args[1] is Ellipsis else len(args)
-            kwargs["type"] = args[0]
+            kwargs["type"] = finite_float if args[0] is float else args[0]
             kwargs["metavar"] = f.name.upper()
         elif base in (int, float, str):
-            kwargs["type"] = base
+            kwargs["type"] = finite_float if base is float else base
+            kwargs["metavar"] = f.name.upper()
         else:
             raise TypeError(f"{key}: no flag for field type {tp!r}")
-        parser.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
+        extra = (aliases or {}).get(key, ())
+        parser.add_argument(flag, *extra, help=help_text.replace("%", "%%"), **kwargs)
 
 
 def config_from_args(

@@ -5,44 +5,8 @@
 # tracked and the true poses), then every step runs the updater with
 # --depth-source change-aware:CKPT (the model's own render M_t is the network's prior;
 # registration on, as for "updated"). Its paths use the literal method name, so the
-# generic `update` rule (methods of METHOD_SPECS) never matches them.
-
-
-def change_aware_base_checkpoint():
-    """config depth.change_aware_checkpoint; "default" = the one shipped with the package."""
-    ck = DC.get("change_aware_checkpoint", "default")
-    if ck == "default":
-        from chisel.depth.change_aware import DEFAULT_CHANGE_CHECKPOINT
-
-        return str(DEFAULT_CHANGE_CHECKPOINT)
-    return ck
-
-
-def change_aware_checkpoint(wc):
-    if DC.get("finetune", True):
-        return f"{RESULTS}/seed_{wc.seed}/depth/change_aware_finetuned.pt"
-    return change_aware_base_checkpoint()
-
-
-def change_aware_previous(wc):
-    step = int(wc.step)
-    if step == 1:
-        return f"{RESULTS}/seed_{wc.seed}/preop/model.npz"
-    return f"{RESULTS}/seed_{wc.seed}/base/change_aware/step_{step - 1:02d}/model.npz"
-
-
-def change_aware_options(wc):
-    return " ".join(
-        [
-            f"--threshold-mm {UC.get('threshold_mm', 1.0)}",
-            f"--noise-k {UC.get('noise_k', 3.0)}",
-            f"--min-views {UC.get('min_views', 5)}",
-            f"--min-agreement {UC.get('min_agreement', 0.8)}",
-            f"--tracking-accuracy-mm {UC.get('tracking_accuracy_mm', 3.0)}",
-            f"--tracking-accuracy-deg {UC.get('tracking_accuracy_deg', 3.0)}",
-            "--allow-unused-step",
-        ]
-    )
+# generic `update` rule (methods of METHOD_SPECS) never matches them. Its input functions
+# live in common.smk.
 
 
 rule finetune_change_aware:
@@ -74,14 +38,13 @@ rule update_change_aware:
         model=change_aware_previous,
         index=rules.render.output.index,
         ckpt=change_aware_checkpoint,
+        config=UPDATE_CONFIG,
     output:
         model=f"{RESULTS}/seed_{{seed}}/base/change_aware/step_{{step}}/model.npz",
         report=f"{RESULTS}/seed_{{seed}}/base/change_aware/step_{{step}}/update.json",
         masks=f"{RESULTS}/seed_{{seed}}/base/change_aware/step_{{step}}/change_masks.npz",
     log:
         f"{RESULTS}/logs/seed_{{seed}}/base/change_aware/update_step_{{step}}.log",
-    params:
-        opts=change_aware_options,
     threads: 2
     conda:
         ENV
@@ -89,6 +52,7 @@ rule update_change_aware:
         mem_mb=MEM_MB,
     shell:
         "python -m chisel update --model {input.model} "
-        "--sequence $(dirname {input.index})/step_{wildcards.step} {params.opts} "
+        "--sequence $(dirname {input.index})/step_{wildcards.step} --config {input.config} "
+        "--allow-unused-step "
         "--depth-source change-aware:{input.ckpt} "
         "--out {output.model} --report {output.report} --masks {output.masks} > {log} 2>&1"

@@ -89,7 +89,10 @@ def network_checkpoint(wildcards):
     return rules.finetune.output.ckpt.format(seed=wildcards.seed) if DC.get("finetune", True) else []
 
 
-UC = config.get("update", {})
+# The ``update:`` section as the file that ``chisel update --config`` reads (written by the
+# update_config rule):
+# UpdateConfig's fields, checked by chisel, whose defaults are the dataclass's own.
+UPDATE_CONFIG = f"{RESULTS}/update_config.yaml"
 
 
 def update_sequence(wc):
@@ -112,6 +115,7 @@ def update_inputs(wc):
     inputs = {
         "model": previous_model(wc),
         "index": f"{RESULTS}/seed_{wc.seed}/render/render.json",
+        "config": UPDATE_CONFIG,
     }
     if wc.variant.startswith("posenoise-"):
         inputs["seq"] = update_sequence(wc)
@@ -123,18 +127,10 @@ def update_inputs(wc):
 def update_options(wc, input):
     depth, registration = METHOD_SPECS[wc.method]
     # A step whose frames all fail registration is scored as "no update", not a crash.
-    opts = [
-        f"--threshold-mm {UC.get('threshold_mm', 1.0)}",
-        f"--noise-k {UC.get('noise_k', 3.0)}",
-        f"--min-views {UC.get('min_views', 5)}",
-        f"--min-agreement {UC.get('min_agreement', 0.8)}",
-        f"--tracking-accuracy-mm {UC.get('tracking_accuracy_mm', 3.0)}",
-        f"--tracking-accuracy-deg {UC.get('tracking_accuracy_deg', 3.0)}",
-        "--allow-unused-step",
-    ]
+    opts = [f"--config {input.config}", "--allow-unused-step"]
     opts.append(f"--depth-source sequence:{input.pred}" if depth == "network" else "--depth-source gt")
     if not registration:
-        opts.append("--no-registration")
+        opts.append("--no-register")
     kind, _, value = wc.variant.partition("-")
     if kind == "seqlen":
         opts.append(f"--max-frames {value}")
@@ -180,3 +176,27 @@ def report_sweeps(wc):
 
 
 RC = config["render"]
+
+
+# The change-aware network's row (rules in change_aware.smk).
+def change_aware_base_checkpoint():
+    """config depth.change_aware_checkpoint; "default" = the one shipped with the package."""
+    ck = DC.get("change_aware_checkpoint", "default")
+    if ck == "default":
+        from chisel.depth.change_aware import DEFAULT_CHANGE_CHECKPOINT
+
+        return str(DEFAULT_CHANGE_CHECKPOINT)
+    return ck
+
+
+def change_aware_checkpoint(wc):
+    if DC.get("finetune", True):
+        return f"{RESULTS}/seed_{wc.seed}/depth/change_aware_finetuned.pt"
+    return change_aware_base_checkpoint()
+
+
+def change_aware_previous(wc):
+    step = int(wc.step)
+    if step == 1:
+        return f"{RESULTS}/seed_{wc.seed}/preop/model.npz"
+    return f"{RESULTS}/seed_{wc.seed}/base/change_aware/step_{step - 1:02d}/model.npz"

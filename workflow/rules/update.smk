@@ -1,3 +1,17 @@
+rule update_config:
+    """The experiment's update parameters as one YAML file (chisel update --config)."""
+    output:
+        UPDATE_CONFIG,
+    log:
+        f"{RESULTS}/logs/update_config.log",
+    params:
+        mapping=config.get("update", {}),
+    conda:
+        ENV
+    script:
+        "../scripts/write_yaml.py"
+
+
 rule update:
     """One surgical step of the paper's update: change detection + masked TSDF update."""
     input:
