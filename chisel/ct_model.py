@@ -32,6 +32,7 @@ import trimesh
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import transform_points
+from chisel.core.raycast import SurfaceQueries
 from chisel.io.ct import DEFAULT_HU_ISO, INTENSITY_MIN_HU, LABEL_ISO, surface_from_volume
 
 CtKind = Literal["auto", "intensity", "label"]
@@ -176,20 +177,14 @@ def signed_distance_mm(ct: CtInput, points_mm: np.ndarray) -> np.ndarray:
 
     + = air, - = tissue; NaN outside the CT's box (``ct.bounds_mm``).
     """
-    import open3d as o3d
     from scipy.ndimage import map_coordinates
 
     p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.asarray(ct.surface.vertices, dtype=np.float32)),
-        o3d.core.Tensor(np.asarray(ct.surface.faces, dtype=np.uint32)),
-    )
-    q = o3d.core.Tensor(p.astype(np.float32))
+    queries = SurfaceQueries(ct.surface.vertices, ct.surface.faces, ct.source)
     if ct.field is None:
-        sd = scene.compute_signed_distance(q).numpy().astype(np.float64)
+        sd = queries.signed_distance(p, nsamples=1).astype(np.float64)
     else:
-        dist = scene.compute_distance(q).numpy().astype(np.float64)
+        dist = queries.distance(p).astype(np.float64)
         ijk = transform_points(np.linalg.inv(ct.T_world_from_voxel), p)
         val = map_coordinates(ct.field, ijk.T, order=1, mode="nearest")
         sd = np.where(val > ct.level, -dist, dist)

@@ -26,8 +26,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy import ndimage
+
+from chisel.core.raycast import SurfaceQueries
 
 HU_AIR = -1000.0
 HU_SOFT_TISSUE = 40.0
@@ -110,44 +111,13 @@ def grid_for_block(block_min_mm, block_max_mm, spacing_mm: float, inset_mm: floa
     return CTGrid(tuple(float(v) for v in lo), tuple(int(v) for v in n), float(spacing_mm))
 
 
-class SurfaceDistance:
-    """Signed distance to a closed triangle mesh (positive outside the solid), mm.
+class SurfaceDistance(SurfaceQueries):
+    """Signed distance to a closed triangle mesh (positive outside the solid), mm: the
+    shared Open3D queries (:class:`chisel.core.raycast.SurfaceQueries`) plus the grid
+    versions the CT volumes need.
 
     vertices_mm : (V, 3) float, mm.  faces : (F, 3) int.
     """
-
-    def __init__(self, vertices_mm: np.ndarray, faces: np.ndarray) -> None:
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(vertices_mm, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
-        )
-
-    def inside(self, points_mm: np.ndarray) -> np.ndarray:
-        """(..., 3) float points -> (...,) bool, True inside the solid (majority of 3 rays)."""
-        shape = np.shape(points_mm)[:-1]
-        p = np.ascontiguousarray(np.reshape(points_mm, (-1, 3)), dtype=np.float32)
-        occ = self.scene.compute_occupancy(o3d.core.Tensor(p), nsamples=3).numpy()
-        return occ.reshape(shape).astype(bool)
-
-    def distance(self, points_mm: np.ndarray) -> np.ndarray:
-        """(..., 3) float points -> (...,) float32 unsigned distance to the surface, mm."""
-        shape = np.shape(points_mm)[:-1]
-        p = np.ascontiguousarray(np.reshape(points_mm, (-1, 3)), dtype=np.float32)
-        if len(p) == 0:
-            return np.zeros(shape, np.float32)
-        return self.scene.compute_distance(o3d.core.Tensor(p)).numpy().reshape(shape)
-
-    def first_hit(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Distance along each unit direction to the first surface hit, mm; inf on a miss.
-
-        origins_mm, directions : (N, 3) float. Returns (N,) float32.
-        """
-        rays = np.concatenate(
-            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
-        )
-        hit = self.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, dtype=np.float32)))
-        return hit["t_hit"].numpy()
 
     def inside_grid(self, points_mm: np.ndarray) -> np.ndarray:
         """Occupancy of a (nx, ny, nz, 3) grid of points -> (nx, ny, nz) bool.
@@ -158,7 +128,7 @@ class SurfaceDistance:
         """
         shape = points_mm.shape[:-1]
         p = np.ascontiguousarray(points_mm.reshape(-1, 3), dtype=np.float32)
-        occ = self.scene.compute_occupancy(o3d.core.Tensor(p), nsamples=1).numpy()
+        occ = self.inside(p, nsamples=1)
         occ = occ.reshape(shape).astype(bool)
         recheck = _boundary(occ)
         occ[recheck] = self.inside(points_mm[recheck])

@@ -64,10 +64,7 @@ def find_viewpoint(
     if ok.any():
         idx = np.flatnonzero(ok)
         # line of sight: the first hit from the candidate towards the target is the target
-        rays = np.concatenate([cand[idx], (c - cand[idx])], axis=1).astype(np.float32)
-        import open3d as o3d
-
-        t_hit = surface.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        t_hit = surface.first_hit(cand[idx], c - cand[idx])
         seen = t_hit >= 1.0 - 0.3 / np.linalg.norm(c - cand[idx], axis=1)
         idx = idx[seen]
         idx = idx[reachable(cand[idx])] if len(idx) else idx
