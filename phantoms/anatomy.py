@@ -30,6 +30,7 @@ import manifold3d as m3d
 import numpy as np
 from skimage.measure import marching_cubes
 
+from chisel.core.geometry import vec3
 from phantoms.errors import AnatomyError, NotManifoldError
 
 #: target lamella -> the air cell whose airway-facing wall it is.
@@ -411,17 +412,17 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
         )
     # the ostium (a cylinder from the infundibulum's centre to the sinus's centre) must
     # clear the other cells
-    for c in (bulla, post):
+    for cell in (bulla, post):
         gap = (
-            _segment_distance(np.asarray(c.center_mm), c_u, m_center)
-            - c.radius_mm
+            _segment_distance(np.asarray(cell.center_mm), c_u, m_center)
+            - cell.radius_mm
             - r_o
-            - max(c.wall_mm, t_u)
+            - max(cell.wall_mm, t_u)
         )
         if gap < 0.5:
             raise AnatomyError(
                 "anatomy",
-                f"maxillary ostium passes {gap:.2f} mm from the {c.name} (expected >= 0.5 mm); choose other parameters",
+                f"maxillary ostium passes {gap:.2f} mm from the {cell.name} (expected >= 0.5 mm); choose other parameters",
             )
 
     # --- further ethmoid cells, rejection-sampled above the maxillary sinus --------
@@ -445,7 +446,7 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
         ok = ok and _segment_distance(c, c_u, m_center) >= r + r_o + max(wall_e, t_u) + 0.6
         if ok:
             placed += 1
-            cells.append(SphereCell(f"ethmoid_cell_{placed}", tuple(c), r, wall_e))
+            cells.append(SphereCell(f"ethmoid_cell_{placed}", (x, y, z), r, wall_e))
     if placed < n_eth:
         raise AnatomyError(
             "ethmoid_cells", f"could place only {placed} of {n_eth} ethmoid cells; choose fewer"
@@ -509,14 +510,14 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
     return Anatomy(
         tissue=tissue,
         cells=tuple(cells),
-        maxillary_center_mm=tuple(float(v) for v in m_center),
-        maxillary_semi_axes_mm=tuple(float(v) for v in m_axes),
+        maxillary_center_mm=vec3(m_center),
+        maxillary_semi_axes_mm=vec3(m_axes),
         maxillary_volume_mm3=float(maxillary_volume),
-        block_min_mm=tuple(float(v) for v in b_lo),
-        block_max_mm=tuple(float(v) for v in b_hi),
+        block_min_mm=vec3(b_lo),
+        block_max_mm=vec3(b_hi),
         nostril_mm=(x_nostril, 0.0, z_nostril),
-        airway_min_mm=tuple(float(v) for v in np.maximum(air_lo, b_lo)),
-        airway_max_mm=tuple(float(v) for v in np.minimum(air_hi, b_hi)),
+        airway_min_mm=vec3(np.maximum(air_lo, b_lo)),
+        airway_max_mm=vec3(np.minimum(air_hi, b_hi)),
         n_voids=expected_voids,
     )
 

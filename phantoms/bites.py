@@ -19,6 +19,7 @@ import manifold3d as m3d
 import numpy as np
 from scipy.spatial import cKDTree
 
+from chisel.core.geometry import vec3
 from phantoms.anatomy import TARGET_CELLS, Anatomy, SphereCell, arrays_from_manifold
 from phantoms.ct import SurfaceDistance
 from phantoms.errors import BiteMissError, ParameterRangeError, UnknownTargetError
@@ -224,7 +225,7 @@ def find_target(anatomy: Anatomy, name: str) -> tuple[Target, SphereCell, np.nda
     best = int(idx[np.lexsort((-rim_dist[idx], -np.floor(openness / 0.5)))[0]])
     n = normals[best]
     center = c + cell.outer_radius_mm * n
-    target = Target(name, tuple(float(x) for x in center), tuple(float(x) for x in n), cell.wall_mm)
+    target = Target(name, vec3(center), vec3(n), cell.wall_mm)
     return target, cell, patch_c
 
 
@@ -289,17 +290,17 @@ def plan_bites(
         R_step = _rotation(axis, arcs[k] / r_mid)
         radial = R_step @ n0
         along = R_step @ u
-        side = np.cross(radial, along)
-        R = np.stack([along, side, radial], axis=1)
+        lateral = np.cross(radial, along)
+        R = np.stack([along, lateral, radial], axis=1)
         R = R @ _rotation(np.array([0.0, 0.0, 1.0]), rolls[k])
         tilt_axis = np.array([math.cos(tilt_dirs[k]), math.sin(tilt_dirs[k]), 0.0])
         R = R @ _rotation(tilt_axis, tilts[k])
         center = c + r_mid * radial
         bites.append(
             Bite(
-                center_mm=tuple(float(x) for x in center),
+                center_mm=vec3(center),
                 size_mm=(float(widths[k]), float(lengths[k]), float(depth)),
-                R_world_from_cutter=tuple(tuple(float(x) for x in row) for row in R),
+                R_world_from_cutter=tuple(vec3(row) for row in R),
                 shape="ellipsoid" if shapes[k] == 0 else "rounded_box",
             )
         )

@@ -12,6 +12,7 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import cast
 
 from phantoms.errors import ParameterRangeError, PhantomError
 
@@ -252,7 +253,8 @@ def _cmd_repair(args: argparse.Namespace) -> int:
 
     check_output_dir(args.output)
     try:
-        mesh = trimesh.load(args.input, force="mesh", process=False)
+        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
+        mesh = cast("trimesh.Trimesh", trimesh.load(args.input, force="mesh", process=False))
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types for unreadable files
         raise NotManifoldError(args.input, f"cannot read a triangle mesh: {exc}") from None
     v, f = repair_surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), edge_mm=args.edge_mm)

@@ -195,12 +195,13 @@ def build_phantom(
             path = airway_path(
                 surface,
                 np.asarray(anatomy.nostril_mm),
-                anatomy.airway_min_mm,
-                anatomy.airway_max_mm,
+                np.asarray(anatomy.airway_min_mm),
+                np.asarray(anatomy.airway_max_mm),
                 target,
             )
             note("airway path")
         else:
+            assert cutter is not None  # only the preop solid (k == 0) has no cutter
             box = cutter.bounding_box()
             sd = update_sd(sd, grid, surface, np.asarray(box[:3]), np.asarray(box[3:]), clip)
         cv = cf = None
@@ -348,6 +349,7 @@ def write_phantom(
                 ),
             )
             if st.cutter_vertices_mm is not None:
+                assert st.cutter_faces is not None  # set together (arrays_from_manifold)
                 atomic_write_bytes(
                     tmp / f"meshes/cutter_{k:02d}.ply",
                     ply_bytes(st.cutter_vertices_mm, st.cutter_faces),
@@ -363,6 +365,7 @@ def write_phantom(
             if st.tets is not None:
                 from phantoms.tet import vtu_bytes
 
+                assert st.tet_points_mm is not None  # set together (tetrahedralize)
                 atomic_write_bytes(
                     tmp / f"tet/step_{k:02d}.vtu", vtu_bytes(st.tet_points_mm, st.tets)
                 )

@@ -43,8 +43,8 @@ MAX_SAMPLES = 4000
 def _scene(v: np.ndarray, f: np.ndarray) -> o3d.t.geometry.RaycastingScene:
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(v, np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(f, np.uint32)),
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(v, np.float32)),
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(f, np.uint32)),
     )
     return scene
 
@@ -97,7 +97,9 @@ def revealed_points(
     """
     pre_scene, last_scene = _scene(*preop), _scene(*last)
     o = np.asarray(origins_mm, np.float32)
-    sd = pre_scene.compute_signed_distance(o3d.core.Tensor(o)).numpy()
+    sd = pre_scene.compute_signed_distance(
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(o))
+    ).numpy()
     # signed distance is negative inside a closed mesh; the airway is outside the tissue
     o = o[sd >= CLEARANCE_MM]
     if len(o) == 0 or len(samples_mm) == 0:
@@ -107,7 +109,7 @@ def revealed_points(
     d = np.tile(s, (len(o), 1)) - eo
     dist = np.linalg.norm(d, axis=1)
     d /= np.maximum(dist, 1e-9)[:, None]
-    rays = o3d.core.Tensor(np.concatenate([eo, d], axis=1).astype(np.float32))
+    rays = o3d.core.Tensor.from_numpy(np.concatenate([eo, d], axis=1).astype(np.float32))
     t_last = last_scene.cast_rays(rays)["t_hit"].numpy()
     t_pre = pre_scene.cast_rays(rays)["t_hit"].numpy()
     keep = (

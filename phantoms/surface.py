@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import manifold3d as m3d
 import numpy as np
@@ -34,7 +35,8 @@ def load_tissue(
 
     path = Path(path)
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
+        mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=False))
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types for unreadable files
         raise NotManifoldError(path, f"cannot read a triangle mesh: {exc}") from None
     v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)

@@ -10,16 +10,31 @@ Conventions (see docs/conventions.md):
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import SupportsFloat, SupportsInt
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from chisel.core.errors import CameraError, PoseError
 
 RIGID_TOL = 1e-5
 """Tolerance on ``R^T R - I`` and ``det(R) - 1`` for a pose to count as rigid."""
+
+
+def vec3(a: Iterable[SupportsFloat]) -> tuple[float, float, float]:
+    """A 3-vector (array, sequence) as a tuple of three Python floats."""
+    x, y, z = (float(v) for v in a)
+    return x, y, z
+
+
+def ivec3(a: Iterable[SupportsInt]) -> tuple[int, int, int]:
+    """A 3-vector of indices or counts as a tuple of three Python ints."""
+    i, j, k = (int(v) for v in a)
+    return i, j, k
 
 
 def check_rigid(T: np.ndarray, source: str = "pose") -> np.ndarray:
@@ -73,7 +88,7 @@ def transform_points(T_dst_from_src: np.ndarray, points_src: np.ndarray) -> np.n
     return p @ T[:3, :3].T + T[:3, 3]
 
 
-def make_transform(R: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
+def make_transform(R: ArrayLike, t_mm: ArrayLike) -> np.ndarray:
     """4x4 transform from a (3, 3) rotation and a (3,) translation in mm."""
     T = np.eye(4)
     T[:3, :3] = R
