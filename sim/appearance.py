@@ -16,6 +16,7 @@ import dataclasses
 
 import numpy as np
 
+from chisel.core.geometry import vec3
 from sim.config import AppearanceConfig, SimConfig
 
 TEXEL_LEVELS = 1023
@@ -149,7 +150,7 @@ def randomize(cfg: SimConfig, seed: int) -> SimConfig:
     albedo = np.clip(a0 * np.array([1.0 + hue, 1.0 - hue, 1.0 - hue]), 0.02, 0.98)
     appearance = dataclasses.replace(
         cfg.appearance,
-        albedo_rgb=tuple(float(x) for x in albedo),
+        albedo_rgb=vec3(albedo),
         vessel_strength=u(r.vessel_strength),
         roughness=u(r.roughness),
         specular=u(r.specular),

@@ -164,6 +164,7 @@ def remap_to_camera(image: np.ndarray, grid: RenderGrid, nearest: bool) -> np.nd
     if grid.identity:
         return image
     interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    assert grid.map_x is not None and grid.map_y is not None  # not identity: both maps set
     out = cv2.remap(
         np.ascontiguousarray(image, dtype=np.float32),
         grid.map_x,

@@ -76,9 +76,9 @@ def _catmull_rom(keys: np.ndarray, samples_per_segment: int) -> tuple[np.ndarray
     for i in range(1, len(p) - 2):
         p0, p1, p2, p3 = p[i - 1], p[i], p[i + 1], p[i + 2]
         t0 = 0.0
-        t1 = t0 + max(np.linalg.norm(p1[:3] - p0[:3]) ** 0.5, 1e-6)
-        t2 = t1 + max(np.linalg.norm(p2[:3] - p1[:3]) ** 0.5, 1e-6)
-        t3 = t2 + max(np.linalg.norm(p3[:3] - p2[:3]) ** 0.5, 1e-6)
+        t1 = t0 + max(float(np.linalg.norm(p1[:3] - p0[:3])) ** 0.5, 1e-6)
+        t2 = t1 + max(float(np.linalg.norm(p2[:3] - p1[:3])) ** 0.5, 1e-6)
+        t3 = t2 + max(float(np.linalg.norm(p3[:3] - p2[:3])) ** 0.5, 1e-6)
         last = i == len(p) - 3
         t = np.linspace(t1, t2, samples_per_segment + (1 if last else 0), endpoint=last)[:, None]
         a1 = (t1 - t) / (t1 - t0) * p0 + (t - t0) / (t1 - t0) * p1
@@ -384,7 +384,7 @@ def eval_poses(
     """
     rng = np.random.default_rng([int(seed), _KIND_SEED["eval"]])
     _check_target(target, tissue)
-    poses = []
+    poses: list[np.ndarray] = []
     draws = 0
     limit = 200 * int(n_poses) + 1000
     while len(poses) < n_poses and draws < limit:

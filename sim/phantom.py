@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -182,7 +182,8 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
     if not p.is_file():
         raise MeshError(p, "mesh file does not exist")
     try:
-        mesh = trimesh.load(p, force="mesh", process=True)
+        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
+        mesh = cast(trimesh.Trimesh, trimesh.load(p, force="mesh", process=True))
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
         # trimesh's own message ("list index out of range") does not say what is wrong.
         raise MeshError(

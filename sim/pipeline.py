@@ -195,6 +195,7 @@ def render_sequence(
             (extras / sub).mkdir(parents=True, exist_ok=True)
     bar = tqdm(total=n, desc=f"render {seq.name}", unit="frame", disable=not progress, leave=False)
     if track is not None:
+        assert extras is not None  # made above whenever there is a tool track
         with SequenceWriter(out_dir, cam, meta=meta, camera_mask=renderer.field_stop) as w:
             for i in range(n):
                 tool = (int(track.kind[i]), track.T_world_from_tool[i])
@@ -390,7 +391,7 @@ def render_phantom(
                     if p.kind == "eval"
                     else "tracked poses",
                     "tracking": config_to_dict(cfg)["tracking"] if p.kind != "eval" else None,
-                    "cut_faces": int(cuts[k].sum()) if cuts[k] is not None else 0,
+                    "cut_faces": 0 if (cut := cuts[k]) is None else int(cut.sum()),
                     "tools": p.tools is not None,
                 }
                 render_sequence(renderer, p, tmp / p.name, meta, progress=progress)

@@ -20,6 +20,7 @@ variant as the reference the fast one is tested against.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -263,8 +264,8 @@ class MeshRenderer:
         }
 
     def _mi_mesh(
-        self, name: str, mesh: trimesh.Trimesh, props: object, with_normals: bool
-    ) -> object:
+        self, name: str, mesh: trimesh.Trimesh, props: Any, with_normals: bool
+    ) -> Any:
         mi = self.mi
         m = mi.Mesh(
             name, len(mesh.vertices), len(mesh.faces), props=props, has_vertex_normals=with_normals
@@ -279,7 +280,7 @@ class MeshRenderer:
             m.recompute_vertex_normals()
         return m
 
-    def _buffer(self, values: np.ndarray) -> object:
+    def _buffer(self, values: np.ndarray) -> Any:
         """A flat float32 buffer for a mesh parameter: drjit's Float on the JIT variants,
         a numpy array on ``scalar_rgb`` (whose ``mi.Float`` is a Python float)."""
         flat = np.ascontiguousarray(values, dtype=np.float32).ravel()
@@ -309,13 +310,14 @@ class MeshRenderer:
         self.params.update()
         self._tool_state = state
 
-    def _visible_z_and_tool(self, T: np.ndarray) -> tuple[object, object]:
+    def _visible_z_and_tool(self, T: np.ndarray) -> tuple[Any, Any]:
         """Unevaluated drjit (z-depth of the first hit with instruments, NaN = miss; True
         where that hit is an instrument) along every raw pixel centre's exact ray."""
         dr, mi = self.drjit, self.mi
         R = [dr.opaque(mi.Float, float(x)) for x in T[:3, :3].ravel()]
         o = mi.Point3f(*(dr.opaque(mi.Float, float(x)) for x in T[:3, 3]))
         d = self._dirs_cam
+        assert d is not None  # set on the JIT variants, the only callers
         d_world = mi.Vector3f(
             R[0] * d.x + R[1] * d.y + R[2] * d.z,
             R[3] * d.x + R[4] * d.y + R[5] * d.z,

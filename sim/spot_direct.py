@@ -37,6 +37,7 @@ from __future__ import annotations
 import importlib
 import math
 from types import ModuleType
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,6 +51,8 @@ def undistorted_rays(camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray
     """(N, 3) float64 rays (z = 1, OpenCV axes) whose distorted projection is (u, v)."""
     u = np.asarray(u, dtype=np.float64).ravel()
     v = np.asarray(v, dtype=np.float64).ravel()
+    x: np.ndarray
+    y: np.ndarray
     if not camera.has_distortion:
         x, y = (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy
     else:
@@ -81,13 +84,13 @@ def pixel_ray_frames(camera: Camera, used: np.ndarray) -> tuple[np.ndarray, ...]
 
 def principled_eval(
     dr: ModuleType,
-    n: object,
-    wi: object,
-    wo: object,
-    base: object,
+    n: Any,
+    wi: Any,
+    wo: Any,
+    base: Any,
     roughness: float,
     eta: float,
-) -> object:
+) -> Any:
     """Mitsuba's ``principled`` BSDF ``eval`` (BSDF x cos(wo)) for the lobes the tissue uses.
 
     Those are the dielectric specular lobe (GGX, exact dielectric Fresnel, separable Smith
@@ -121,7 +124,7 @@ def principled_eval(
     D = 1.0 / (math.pi * a2 * dr.square(sin2_h / a2 + cos_h * cos_h))
     D = dr.select(D * cos_h > 1e-20, D, 0.0)
 
-    def g1(cos_v: object, c_vh: object) -> object:
+    def g1(cos_v: Any, c_vh: Any) -> Any:
         tan2 = a2 * dr.maximum(1.0 - cos_v * cos_v, 0.0) / (cos_v * cos_v)
         g = 2.0 / (1.0 + dr.sqrt(1.0 + tan2))
         return dr.select(c_vh * cos_v <= 0, 0.0, g)
@@ -130,7 +133,7 @@ def principled_eval(
         (c_ih > 0) & (c_oh > 0) & (F > 0), F * D * g1(cos_i, c_ih) * g1(cos_o, c_oh), 0.0
     ) / (4.0 * cos_i)
 
-    def schlick_weight(c: object) -> object:
+    def schlick_weight(c: Any) -> Any:
         m = dr.clip(1.0 - c, 0.0, 1.0)
         return dr.square(dr.square(m)) * m
 
@@ -172,7 +175,7 @@ class PackedTexture:
             float(r / s) for r, s in zip(self.res, box[1] - box[0], strict=True)
         )
 
-    def eval(self, p: object, active: object = True) -> object:
+    def eval(self, p: Any, active: Any = True) -> Any:
         """drjit Color3f base colour at world points ``p`` (drjit Point3f, mm); lanes
         outside ``active`` read nothing (0)."""
         mi = self.mi
@@ -225,7 +228,7 @@ class SpotDirectIntegrator:
     def __init__(
         self,
         mi: ModuleType,
-        scene: object,
+        scene: Any,
         camera: Camera,
         used: np.ndarray,
         light: LightConfig,
@@ -233,11 +236,11 @@ class SpotDirectIntegrator:
         texture: TextureVolume,
         roughness: float,
         specular: float,
-        tissue: object | None = None,
+        tissue: Any | None = None,
         cut_faces: np.ndarray | None = None,
         cut_texture: TextureVolume | None = None,
-        tools: tuple[object, ...] = (),
-        tool_bsdf: object | None = None,
+        tools: tuple[Any, ...] = (),
+        tool_bsdf: Any | None = None,
     ) -> None:
         import drjit as dr  # noqa: PLC0415 - only after mitsuba picked the variant
 
@@ -308,7 +311,7 @@ class SpotDirectIntegrator:
         # principled.cpp: eta from ``specular`` when no ``eta`` is given.
         self.eta = 2.0 / (1.0 - math.sqrt(0.08 * float(specular))) - 1.0
 
-    def sample_rays(self, T_world_from_cam: np.ndarray, seed: int) -> tuple[object, object]:
+    def sample_rays(self, T_world_from_cam: np.ndarray, seed: int) -> tuple[Any, Any]:
         """The primary rays of every sample: ``spp`` per used pixel, pixel-major.
 
         T_world_from_cam : (4, 4) float64 rigid pose, mm (OpenCV camera axes).
@@ -345,7 +348,7 @@ class SpotDirectIntegrator:
         )
         return origin, d_world
 
-    def primary_hit_mm(self, T_world_from_cam: np.ndarray, seed: int) -> object:
+    def primary_hit_mm(self, T_world_from_cam: np.ndarray, seed: int) -> Any:
         """Distance in mm along each of :meth:`sample_rays` to the first surface (inf on
         a miss), as an unevaluated drjit Float: the primary rays alone.
 
@@ -357,7 +360,7 @@ class SpotDirectIntegrator:
         pi = self.scene.ray_intersect_preliminary(mi.Ray3f(origin, d_world), coherent=True)
         return self.dr.select(pi.is_valid(), pi.t, self.dr.inf)
 
-    def radiance(self, T_world_from_cam: np.ndarray, seed: int) -> object:
+    def radiance(self, T_world_from_cam: np.ndarray, seed: int) -> Any:
         """Linear radiance of the ``used`` pixels, as an unevaluated drjit Color3f.
 
         T_world_from_cam : (4, 4) float64 rigid pose, mm (OpenCV camera axes).
@@ -410,6 +413,7 @@ class SpotDirectIntegrator:
             base = self.texture.eval(p)
         else:
             cut = dr.gather(mi.UInt32, self._cut, pi.prim_index, tissue) > 0
+            assert self.cut_texture is not None  # set together with self._cut
             base = dr.select(
                 cut, self.cut_texture.eval(p, cut), self.texture.eval(p, tissue & ~cut)
             )
@@ -417,6 +421,7 @@ class SpotDirectIntegrator:
         if is_tool is not None:
             # Instruments: Mitsuba's own BSDF (roughconductor) on its surface interaction.
             si = pi.compute_surface_interaction(ray, mi.RayFlags.All, is_tool)
+            assert self._tool_bsdf is not None  # tools need a tool_bsdf (__init__)
             f_tool = self._tool_bsdf.eval(mi.BSDFContext(), si, si.to_local(wo), is_tool)
             f = dr.select(is_tool, f_tool, f)
         value = dr.select(active, f * (self._intensity * falloff / dist2), 0.0)
@@ -436,7 +441,7 @@ class SpotDirectIntegrator:
         out[self.used] = np.asarray(per_pixel, dtype=np.float32).T
         return out.reshape(self.shape[0], self.shape[1], 3)
 
-    def sensor(self, radiance: object, gain: object, cfg: ImagingConfig, key: int) -> object:
+    def sensor(self, radiance: Any, gain: Any, cfg: ImagingConfig, key: int) -> Any:
         """The sensor model of :func:`sim.imaging.sensor_image` in drjit, on the used pixels.
 
         radiance : drjit Color3f from :meth:`radiance`. gain : drjit Float, the vignetting

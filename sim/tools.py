@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -145,7 +146,8 @@ def load_tool_model(path: str | Path) -> trimesh.Trimesh:
     if not p.is_file():
         raise MeshError(p, "tools.model_file: file does not exist")
     try:
-        mesh = trimesh.load(p, force="mesh", process=True)
+        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
+        mesh = cast(trimesh.Trimesh, trimesh.load(p, force="mesh", process=True))
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
         raise MeshError(
             p, f"tools.model_file: not a readable mesh: {type(exc).__name__}: {exc}"
@@ -289,7 +291,7 @@ def _episodes(n: int, cfg: ToolsConfig, rng: np.random.Generator) -> list[tuple[
     lo, hi = cfg.episode_frames
     lengths: list[int] = []
     while sum(lengths) < want:
-        lengths.append(int(min(rng.integers(lo, hi + 1), want - sum(lengths))))
+        lengths.append(min(int(rng.integers(lo, hi + 1)), want - sum(lengths)))
     gaps = n - sum(lengths)
     # Random gaps before, between and after the episodes.
     cuts = np.sort(rng.integers(0, gaps + 1, size=len(lengths)))
