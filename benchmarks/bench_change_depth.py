@@ -24,7 +24,9 @@ Pixel change mask of the change-aware output (depth - prior > 1 mm) against the 
 precision and recall over all frames. Speed: frames/s of one streaming step's depth
 work at the frame size (ray-cast render of the model surface at the tracked pose +
 the network, batch 1, ``--threads`` torch threads); the TSDF fusion is not included.
-Prints ``name: value`` lines, ``change_aware_abs_rel`` last (mean of near and unchanged,
+``--stream-update`` also times the whole streaming update per frame (``ChiselUpdater``:
+render, network, change mask, fusion; with and without per-frame registration) on a
+model built from the previous step's mesh. Prints ``name: value`` lines, ``change_aware_abs_rel`` last (mean of near and unchanged,
 vs_tracked).
 On a shared machine the timings are pessimistic.
 """
@@ -62,6 +64,27 @@ def _median_scaled(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
     return pred * (np.median(target[ok]) / np.median(pred[ok]))
 
 
+def _stream_update(ref, seq: Sequence, change) -> None:  # noqa: ANN001
+    """frames/s of ChiselUpdater.process (render M_t, the network, change mask, fusion) on a
+    model built from the previous step's mesh at the preop sweep's poses (voxel 0.5 mm)."""
+    from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, build_preop_model
+
+    preop = Sequence(ref.path.parent / "preop")
+    mesh = phantom_step_mesh(ref.phantom_dir, ref.step - 1)
+    model = build_preop_model(mesh, seq.camera, preop.poses, BuildConfig(voxel_size_mm=0.5))
+    for register in (False, True):
+        upd = ChiselUpdater(model, seq.camera, change, UpdateConfig(register=register))
+        upd.begin_step()
+        times = []
+        for i in range(len(seq)):
+            f = seq.frame(i, depth=False)
+            t = time.perf_counter()
+            upd.process(f)
+            times.append(time.perf_counter() - t)
+        name = "registration" if register else "no_registration"
+        print(f"stream_update_{name}_fps_median: {1.0 / float(np.median(times[2:])):.1f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, nargs="+", help="evaluation dataset folder(s)")
@@ -69,6 +92,11 @@ def main() -> None:
     ap.add_argument("--mono", default=str(DEFAULT_CHECKPOINT), help="monocular checkpoint")
     ap.add_argument("--frame-step", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--stream-update",
+        action="store_true",
+        help="also time ChiselUpdater.process per frame (builds a TSDF model first; slow)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     refs = [r for r in read_step_dataset(args.data) if r.step >= 1]
@@ -123,6 +151,8 @@ def main() -> None:
         change(Frame(f.index, f.T_world_from_cam, rgb=f.rgb, mask=f.mask),
                prior_mm=rc.render_depth(seq.camera, f.T_world_from_cam))  # fmt: skip
         times.append(time.perf_counter() - t)
+    if args.stream_update:
+        _stream_update(ref, seq, change)
     print(f"image_size: {seq.camera.width}x{seq.camera.height}")
     print(f"cpu_simd: {cpu_simd()}")
     print(f"threads: {args.threads}")
