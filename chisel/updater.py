@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from chisel.carve import CARVE_DELETED, CARVE_FUSE, carve_first_layer
 from chisel.change import (
     ChangeConfig,
     change_mask,
@@ -57,9 +58,6 @@ from chisel.core.raycast import MeshRaycaster
 from chisel.ct_model import CtInput, check_ct_covers_views, ct_tsdf
 from chisel.depth_source import estimate_depth, is_metric, wants_prior
 from chisel.fusion import (
-    CARVE_DELETED,
-    CARVE_FUSE,
-    carve_first_layer,
     check_pose_in_model,
     integrate,
 )
@@ -145,7 +143,7 @@ class UpdateConfig:
     carve: Literal["deletion", "paper"] = "deletion"
     """How a change is carved: "deletion" = delete the first layer along a changed ray up to
     the next surface the model holds, fuse the new depth only where it holds nothing
-    behind (:func:`chisel.fusion.carve_first_layer`); "paper" = fuse the new depth at every
+    behind (:func:`chisel.carve.carve_first_layer`); "paper" = fuse the new depth at every
     changed pixel (the masked update alone)."""
     allow_unused_step: bool = False
     """When no frame of a step can be used (every registration failed): False = raise

@@ -159,7 +159,7 @@ def test_a_lamella_thinner_than_the_threshold_is_not_deleted_where_it_still_stan
     """A changed pixel whose estimate still lies on a thin lamella (the mask's closing, or a
     noisy threshold, put it in the mask) deletes nothing: the estimate must see past the
     layer's back face, not only past its front by the threshold."""
-    from chisel.fusion import CARVE_DELETED, carve_first_layer
+    from chisel.carve import CARVE_DELETED, carve_first_layer
 
     block = _box([-14.0, -14.0, -16.0], [14.0, 14.0, 24.0])
     solid = block.difference(_box([-10, -10, -12], [10, 10, 10.0]), engine="manifold")

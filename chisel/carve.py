@@ -1,0 +1,269 @@
+"""Deletion-first carving of a step's change (numba, CPU).
+
+Where a frame shows that tissue is gone, the first layer of tissue along the ray is
+deleted up to the next surface the model already holds (the CT holds the cell behind a
+lamella), and the new depth is fused only where the model holds nothing behind (the
+paper's masked update, :func:`chisel.fusion.integrate`). A ray-centric plan finds, per
+changed pixel, the depth intervals of the layers to delete; a voxel-centric pass frees
+the voxels whose centres project into them, as fusion decides (see docs/updater.md).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera, check_rigid, invert_rigid
+from chisel.fusion import TILE_PX, _camera_tiles, _flat
+from chisel.model import TsdfModel
+
+CARVE_NONE = 0
+"""Pixel status of :func:`carve_first_layer`: not changed, or no surface where M_t says."""
+CARVE_DELETED = 1
+"""The first layer along the ray was deleted up to a surface the model already holds (or
+an earlier frame of the step deleted it): nothing to fuse."""
+CARVE_FUSE = 2
+"""The model holds nothing behind the first surface within reach of the estimate
+(unobserved voxels, or solid tissue beyond the estimate): fuse the new depth there."""
+
+
+@numba.njit(inline="always")
+def _voxel_at(A, z, rx, ry, nx, ny, nz):
+    # Nearest voxel of the camera point (rx z, ry z, z); -1 outside the grid.
+    fi = A[0, 0] * rx * z + A[0, 1] * ry * z + A[0, 2] * z + A[0, 3]
+    fj = A[1, 0] * rx * z + A[1, 1] * ry * z + A[1, 2] * z + A[1, 3]
+    fk = A[2, 0] * rx * z + A[2, 1] * ry * z + A[2, 2] * z + A[2, 3]
+    i = int(np.floor(fi + 0.5))
+    j = int(np.floor(fj + 0.5))
+    k = int(np.floor(fk + 0.5))
+    if i < 0 or j < 0 or k < 0 or i >= nx or j >= ny or k >= nz:
+        return -1
+    return (i * ny + j) * nz + k
+
+
+@numba.njit(parallel=True, cache=True)
+def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_mm, trunc_mm, tol_mm,
+                max_layers, z0, z1):  # fmt: skip
+    # Read-only pass: per changed pixel, its status and the depth intervals [z0, z1) of the
+    # layers to delete (up to ``max_layers``). No voxel is written here, so the result does
+    # not depend on the order the pixels are visited in.
+    H, W = mask.shape
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    status = np.zeros((H, W), dtype=np.uint8)
+    for v in numba.prange(H):
+        for u in range(W):
+            if not mask[v, u]:
+                continue
+            zt = m_t[v, u]
+            ze = m_new[v, u]
+            if not (zt > 0.0 and ze > 0.0):
+                continue
+            rx = rays[v, u, 0]
+            ry = rays[v, u, 1]
+            dz = dz_unit[v, u]
+            # Phase A: the first tissue voxel near the old surface M_t.
+            z = zt - voxel_mm
+            found = False
+            unknown = False
+            while z <= zt + trunc_mm:
+                idx = _voxel_at(A, z, rx, ry, nx, ny, nz)
+                if idx < 0:
+                    unknown = True
+                    break
+                if weight[idx] > 0.0 and tsdf[idx] < 0.0:
+                    found = True
+                    break
+                if weight[idx] <= 0.0 and z > zt:
+                    unknown = True
+                    break
+                z += dz
+            if not found:
+                # Free all along: an earlier frame of the step deleted it.
+                status[v, u] = CARVE_FUSE if unknown else CARVE_DELETED
+                continue
+            st = CARVE_FUSE
+            n = 0
+            while n < max_layers:
+                start = z
+                # Through the tissue layer, to the free space behind it.
+                ok = False
+                while True:
+                    z += dz
+                    if z > ze + tol_mm:
+                        break  # the estimate ends inside this tissue: new surface there
+                    idx = _voxel_at(A, z, rx, ry, nx, ny, nz)
+                    if idx < 0 or weight[idx] <= 0.0:
+                        break  # nothing known behind
+                    if tsdf[idx] > 0.0:
+                        ok = True
+                        break
+                # The estimate must see past this layer's back face, not only past its front
+                # (the change mask's threshold): a lamella thinner than the threshold, or a
+                # pixel the mask's closing added, would otherwise be deleted while the
+                # estimate still lies on it.
+                if not ok or ze < z + 0.5 * tol_mm:
+                    break
+                z0[v, u, n] = start
+                z1[v, u, n] = z
+                n += 1
+                st = CARVE_DELETED
+                # Through the cavity to the next surface the model holds.
+                nxt = False
+                while True:
+                    z += dz
+                    idx = _voxel_at(A, z, rx, ry, nx, ny, nz)
+                    if idx < 0 or weight[idx] <= 0.0:
+                        break
+                    if tsdf[idx] < 0.0:
+                        nxt = True
+                        break
+                if not nxt or z >= ze - tol_mm:
+                    break  # the estimate agrees with the next surface: deletion stops here
+            status[v, u] = st
+    return status
+
+
+@numba.njit(parallel=True, cache=True)
+def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
+                 status, z0, z1, half_voxel_mm):  # fmt: skip
+    # Voxel-centric, like the fusion kernel: a voxel is set free when its centre projects
+    # (nearest pixel, lens distortion honoured) to a pixel whose ray deleted a layer and
+    # its depth lies in that layer. A ray-centric walk would free every voxel a changed
+    # ray merely grazes, eroding the rim of an opening by up to a voxel per view.
+    H, W = status.shape
+    ny, nz = shape[1], shape[2]
+    k1_, k2_, p1_, p2_, k3_ = dist[0], dist[1], dist[2], dist[3], dist[4]
+    distorted = (k1_ != 0.0) or (k2_ != 0.0) or (p1_ != 0.0) or (p2_ != 0.0) or (k3_ != 0.0)
+    n_layers = z0.shape[2]
+    counts = np.zeros(hi[0] - lo[0], dtype=np.int64)
+    for ii in numba.prange(hi[0] - lo[0]):
+        i = lo[0] + ii
+        n = 0
+        for j in range(lo[1], hi[1]):
+            for k in range(lo[2], hi[2]):
+                zc = R[2, 0] * i + R[2, 1] * j + R[2, 2] * k + t[2]
+                if zc <= 1e-3:
+                    continue
+                xc = (R[0, 0] * i + R[0, 1] * j + R[0, 2] * k + t[0]) / zc
+                yc = (R[1, 0] * i + R[1, 1] * j + R[1, 2] * k + t[1]) / zc
+                r2 = xc * xc + yc * yc
+                if r2 > r2_max:
+                    continue
+                if distorted:
+                    radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_))
+                    xd = xc * radial + 2.0 * p1_ * xc * yc + p2_ * (r2 + 2.0 * xc * xc)
+                    yd = yc * radial + p1_ * (r2 + 2.0 * yc * yc) + 2.0 * p2_ * xc * yc
+                else:
+                    xd = xc
+                    yd = yc
+                uf = fx * xd + cx + 0.5
+                vf = fy * yd + cy + 0.5
+                if uf < 0.0 or vf < 0.0:
+                    continue
+                u = int(uf)
+                v = int(vf)
+                if u >= W or v >= H or status[v, u] != CARVE_DELETED:
+                    continue
+                for layer in range(n_layers):
+                    za = z0[v, u, layer]
+                    zb = z1[v, u, layer]
+                    if not zb > za:
+                        break
+                    if za - half_voxel_mm <= zc < zb:
+                        idx = (i * ny + j) * nz + k
+                        if tsdf[idx] < 1.0:
+                            tsdf[idx] = 1.0
+                            weight[idx] = 1.0
+                            if use_reset:
+                                reset[idx] = 1
+                            n += 1
+                        break
+        counts[ii] = n
+    return counts.sum()
+
+
+def _deleted_voxel_box(
+    model: TsdfModel,
+    rays: np.ndarray,
+    T_voxel_from_cam: np.ndarray,
+    status: np.ndarray,
+    z0: np.ndarray,
+    z1: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Index box [lo, hi) of the voxels that the deleted layers can reach, or None."""
+    sel = status == CARVE_DELETED
+    if not sel.any():
+        return None
+    r = rays[sel]
+    ends = [r * z0[sel][:, :1], r * z1[sel].max(axis=1, keepdims=True)]
+    P = np.concatenate(ends) @ T_voxel_from_cam[:3, :3].T + T_voxel_from_cam[:3, 3]
+    shape = np.array(model.shape)
+    lo = np.clip(np.floor(P.min(axis=0)).astype(np.int64) - 1, 0, shape)
+    hi = np.clip(np.ceil(P.max(axis=0)).astype(np.int64) + 2, 0, shape)
+    return (lo, hi) if np.all(hi > lo) else None
+
+
+def carve_first_layer(
+    model: TsdfModel,
+    camera: Camera,
+    T_world_from_cam: np.ndarray,
+    m_t: np.ndarray,
+    m_new: np.ndarray,
+    mask: np.ndarray,
+    tol_mm: float,
+    reset: np.ndarray | None = None,
+    max_layers: int = 4,
+) -> tuple[np.ndarray, int]:
+    """Deletion-first carving of one frame's change, **in place**; returns (status, voxels).
+
+    For every changed pixel (``mask``), walk its ray from the old surface M_t through the
+    tissue layer the model holds there. When free space the model already holds follows
+    (a cavity, e.g. the cell behind a lamella) before the estimate's depth, the layer's
+    voxels are set free (tsdf = +1, weight 1): the tissue is gone, and the surface behind it
+    is the model's own, so the estimate's noisy depth is not fused. When the estimate is
+    deeper than that next surface by more than ``tol_mm`` too, the next layer goes as well
+    (at most ``max_layers``). Where the model holds nothing behind (unobserved voxels,
+    or solid tissue reaching beyond the estimate) the pixel's status is
+    :data:`CARVE_FUSE`: the caller fuses the new depth there (the paper's masked update).
+
+    m_t, m_new : (H, W) float32 z-depth of the model (at step start) and the estimate M',
+        mm, NaN invalid; mask : (H, W) bool change mask; tol_mm : the frame's change
+        threshold, mm; reset : the step's per-voxel touched flags (set for deleted voxels).
+    Returns status (H, W) uint8 (``CARVE_*``) and the number of voxels set free.
+    """
+    T = check_rigid(T_world_from_cam, "T_world_from_cam")
+    for name, a in (("m_t", m_t), ("m_new", m_new), ("mask", mask)):
+        camera.check_image(a, name)
+    A = np.ascontiguousarray((np.linalg.inv(model.T_world_from_voxel) @ T)[:3])
+    rays = np.ascontiguousarray(camera.rays_cam(), dtype=np.float64)
+    # Half a voxel of ray length per step, in z units.
+    dz_unit = 0.5 * model.voxel_size_mm / np.linalg.norm(rays, axis=-1)
+    clean = lambda d: np.nan_to_num(np.asarray(d, np.float64), nan=0.0, posinf=0.0)  # noqa: E731
+    shape = np.array(model.shape, dtype=np.int64)
+    H, W = camera.shape
+    z0 = np.zeros((H, W, max_layers))
+    z1 = np.zeros((H, W, max_layers))
+    tsdf = _flat(model.tsdf, "model.tsdf")
+    weight = _flat(model.weight, "model.weight")
+    status = _carve_plan(
+        tsdf, weight, shape, A, rays, clean(m_t), clean(m_new), np.asarray(mask, bool),
+        dz_unit, float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
+        int(max_layers), z0, z1,
+    )  # fmt: skip
+    use_reset = reset is not None
+    if use_reset and (reset.shape != model.shape or reset.dtype != np.uint8):
+        raise InvalidInputError("reset", f"expected {model.shape} uint8, got {reset.shape}")
+    r = _flat(reset, "reset") if use_reset else np.zeros(1, np.uint8)
+    T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
+    box = _deleted_voxel_box(model, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
+    if box is None:
+        return status, 0
+    n = _carve_apply(
+        tsdf, weight, r, use_reset, shape, box[0], box[1],
+        np.ascontiguousarray(T_cam_from_voxel[:3, :3]), np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
+        camera.fx, camera.fy, camera.cx, camera.cy,
+        np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
+        status, z0, z1, 0.5 * float(model.voxel_size_mm),
+    )  # fmt: skip
+    return status, int(n)
