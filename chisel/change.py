@@ -227,6 +227,11 @@ def _square(px: int) -> np.ndarray:
     return np.ones((px, px), dtype=np.uint8)
 
 
+def _morph(m: np.ndarray, op: int, px: int) -> np.ndarray:
+    """OpenCV morphology ``op`` of a uint8 mask with a ``px`` x ``px`` square (uint8 out)."""
+    return cv2.morphologyEx(m, op, _square(px))
+
+
 def frame_threshold(m_raw: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> float:
     """The change threshold of one frame, mm: ``cfg.threshold_mm``, raised to
     ``cfg.noise_k`` robust standard deviations of the noise of M' - M_t when ``noise_k > 0``.
@@ -265,11 +270,11 @@ def change_mask(
     with np.errstate(invalid="ignore"):
         raw = (m_prime - m_t) > thr
     raw &= np.isfinite(m_prime) & np.isfinite(m_t)
-    m = raw.astype(np.uint8)
+    m: np.ndarray = raw.astype(np.uint8)
     if cfg.open_px > 1:
-        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _square(cfg.open_px))
+        m = _morph(m, cv2.MORPH_OPEN, cfg.open_px)
     if cfg.close_px > 1:
-        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _square(cfg.close_px))
+        m = _morph(m, cv2.MORPH_CLOSE, cfg.close_px)
         # Closing may bridge into pixels without data; only valid pixels can change.
         m &= (np.isfinite(m_prime) & np.isfinite(m_t)).astype(np.uint8)
     return clean_mask(m.astype(bool), cfg)

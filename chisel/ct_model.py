@@ -185,6 +185,7 @@ def signed_distance_mm(ct: CtInput, points_mm: np.ndarray) -> np.ndarray:
         sd = queries.signed_distance(p, nsamples=1).astype(np.float64)
     else:
         dist = queries.distance(p).astype(np.float64)
+        assert ct.T_world_from_voxel is not None  # a volume (field) has its affine
         ijk = transform_points(np.linalg.inv(ct.T_world_from_voxel), p)
         val = map_coordinates(ct.field, ijk.T, order=1, mode="nearest")
         sd = np.where(val > ct.level, -dist, dist)

@@ -239,7 +239,8 @@ class TsdfModel:
             arrays["color"] = self.color
         with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
             # np.savez on a file handle: it would append ".npz" to a bare path name.
-            np.savez_compressed(fh, **arrays)
+            # allow_pickle: numpy's default, named so that **arrays cannot stand for it
+            np.savez_compressed(fh, allow_pickle=True, **arrays)
         return path
 
     @classmethod

@@ -480,6 +480,7 @@ def _cmd_render_depth(args: argparse.Namespace) -> int:
         for i in range(len(seq)):
             f = seq.frame(i, depth=False)
             T = f.T_world_from_cam_true if args.true_poses else f.T_world_from_cam
+            assert T is not None  # --true-poses: the sequence's true poses were checked above
             w.add(
                 Frame(
                     index=i,

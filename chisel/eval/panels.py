@@ -148,7 +148,8 @@ def write_panels(path: str | Path, panels: Sequence[StepPanel]) -> Path:
         arrays[key] = depth_to_disk(stack) if key in PANEL_DEPTH_KEYS else stack
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+            # allow_pickle: numpy's default, named so that **arrays cannot stand for it
+            np.savez_compressed(fh, allow_pickle=True, **arrays)
     return Path(path)
 
 

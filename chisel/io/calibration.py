@@ -100,7 +100,7 @@ def _numbers(values: object, what: str, source: str) -> np.ndarray:
         raise CameraError(source, f"{what} must be numbers: {exc}") from None
 
 
-def _dist5(values: np.ndarray, source: str) -> np.ndarray:
+def _dist5(values: object, source: str) -> np.ndarray:
     d = _numbers(values, "distortion coefficients", source).ravel()
     if d.size == 4:
         d = np.append(d, 0.0)

@@ -38,7 +38,7 @@ from __future__ import annotations
 import gzip
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 import trimesh
@@ -205,7 +205,9 @@ def _read_nifti(path: Path) -> tuple[np.ndarray, np.ndarray, Any]:
     import nibabel as nib
 
     try:
-        img = nib.load(str(path))
+        # nib.load is annotated FileBasedImage; a .nii / .nii.gz loads as a Nifti1Image
+        # (Nifti2Image is a subclass)
+        img = cast("nib.Nifti1Image", nib.load(str(path)))
         header = img.header
         sform_code = int(header["sform_code"])
         qform_code = int(header["qform_code"])

@@ -23,6 +23,7 @@ import errno
 import json
 import warnings
 from collections.abc import Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -193,7 +194,7 @@ class SequenceWriter:
         self._poses: list[np.ndarray] = []
         self._true: list[np.ndarray | None] = []
         self._has: dict[str, bool | None] = {"rgb": None, "depth": None, "mask": None}
-        self._ctx = None
+        self._ctx: AbstractContextManager[Path] | None = None
         self._tmp: Path | None = None
 
     def __enter__(self) -> SequenceWriter:
@@ -224,6 +225,7 @@ class SequenceWriter:
             else check_rigid(frame.T_world_from_cam_true, f"frame {i} true pose")
         )
         if self._present("rgb", frame.rgb):
+            assert frame.rgb is not None  # _present: not None
             self.camera.check_image(frame.rgb, f"frame {i} rgb")
             rgb = np.asarray(frame.rgb)
             if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
@@ -232,9 +234,11 @@ class SequenceWriter:
                 )
             imwrite(str(self._tmp / "rgb" / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if self._present("depth", frame.depth_mm):
+            assert frame.depth_mm is not None  # _present: not None
             self.camera.check_image(frame.depth_mm, f"frame {i} depth")
             np.save(self._tmp / "depth" / f"{name}.npy", depth_to_disk(frame.depth_mm))
         if self._present("mask", frame.mask):
+            assert frame.mask is not None  # _present: not None
             self.camera.check_image(frame.mask, f"frame {i} mask")
             imwrite(
                 str(self._tmp / "mask" / f"{name}.png"),
@@ -309,7 +313,8 @@ def _json_type(value: object) -> str:
         return "a boolean"
     if isinstance(value, int | float):
         return "a number"
-    return {dict: "an object", list: "an array", str: "a string"}.get(type(value), "null")
+    names: dict[type, str] = {dict: "an object", list: "an array", str: "a string"}
+    return names.get(type(value), "null")
 
 
 def _is_int(value: object) -> bool:
