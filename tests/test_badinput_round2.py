@@ -18,7 +18,7 @@ from test_import_scene import FIELD_STOP, RAW_CAMERA, make_scene
 from chisel.cli import main as chisel_main
 from chisel.core.errors import InvalidInputError, OutsideManifestError
 from chisel.core.geometry import Camera
-from chisel.io.importers import import_reference
+from chisel.io.import_reference import import_reference
 from chisel.io.undistort import circle_mask
 from sim.phantom import load_phantom
 from sim.synthetic import write_toy_phantom
@@ -209,7 +209,7 @@ def test_a_path_that_is_not_utf8_is_read_not_a_segfault(tmp_path: Path) -> None:
     code = (
         "import os, sys\n"
         "from chisel.io.sequence import Sequence\n"
-        "from chisel.io.importers import read_rgb\n"
+        "from chisel.io.import_common import read_rgb\n"
         "s = Sequence(os.fsdecode(sys.argv[1].encode('latin-1')))\n"
         "assert s.rgb(1).shape == (24, 32, 3) and s.mask(0).any()\n"
         "d = os.fsdecode(sys.argv[2].encode('latin-1'))\n"
@@ -428,7 +428,7 @@ def test_arrays_declared_past_the_limits_are_refused_before_allocation(tmp_path:
     import zipfile
 
     from chisel.core.errors import ResourceLimitError
-    from chisel.io.importers import load_npy
+    from chisel.io.import_common import load_npy
     from chisel.model import TsdfModel
 
     bomb = tmp_path / "m.npz"
@@ -449,7 +449,7 @@ def test_arrays_declared_past_the_limits_are_refused_before_allocation(tmp_path:
     png = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + chunk
     png += struct.pack(">I", zlib.crc32(chunk)) + b"\x00\x00\x00\x00IEND\xaeB`\x82"
     (tmp_path / "huge.png").write_bytes(png)
-    from chisel.io.importers import read_rgb
+    from chisel.io.import_common import read_rgb
 
     with pytest.raises(ResourceLimitError, match=r"huge\.png: image declares 100000x100000"):
         read_rgb(tmp_path / "huge.png")

@@ -30,7 +30,7 @@ from hypothesis import strategies as st
 
 from chisel.core.errors import ChiselError
 from chisel.core.geometry import Camera, look_at
-from chisel.io.importers import import_reference
+from chisel.io.import_reference import import_reference
 from chisel.io.sequence import Frame, Sequence, write_sequence
 from chisel.model import TsdfModel
 from sim.phantom import load_phantom

@@ -27,15 +27,9 @@ from chisel.cli import main as chisel_main
 from chisel.core.errors import InvalidInputError, PoseError
 from chisel.core.geometry import Camera, make_transform, rotation_angle_deg
 from chisel.io.calibration import read_calibration, write_opencv_calibration
-from chisel.io.importers import (
-    FrameConfig,
-    PoseConfig,
-    import_images,
-    import_reference,
-    import_video,
-    match_poses_by_time,
-    read_pose_file,
-)
+from chisel.io.import_frames import FrameConfig, FrameFiles, import_images, import_video
+from chisel.io.import_poses import PoseConfig, match_poses_by_time, read_pose_file
+from chisel.io.import_reference import import_reference
 from chisel.io.sequence import Sequence
 from chisel.io.undistort import circle_mask, make_undistortion
 
@@ -77,7 +71,7 @@ def test_video_tum_timestamps_metres_undistorted(scene, tmp_path) -> None:
         pose_cfg=PoseConfig(
             units="m", match="timestamp", frame_time_offset_s=1.3, time_tolerance_s=0.005
         ),
-        depth_dir=depth_dir,
+        files=FrameFiles(depth_dir=depth_dir),
     )
     seq = Sequence(tmp_path / "seq")
     assert report.num_frames == len(seq) == n and seq.undistorted and not seq.camera.has_distortion
@@ -300,8 +294,7 @@ def test_depth_png_scale_masks_and_frame_range(scene, tmp_path) -> None:
             field_stop_circle=FIELD_STOP,
             mask_margin_px=0.0,
         ),
-        depth_dir=tmp_path / "depth",
-        mask_dir=tmp_path / "tools",
+        files=FrameFiles(depth_dir=tmp_path / "depth", mask_dir=tmp_path / "tools"),
     )
     seq = Sequence(tmp_path / "seq")
     assert report.num_frames == len(seq) == 3 and seq.meta["source_frame_index"] == [1, 3, 5]

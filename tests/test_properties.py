@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from chisel.core.geometry import Camera, check_rigid, invert_rigid, make_transform, transform_points
-from chisel.io.importers import match_poses_by_time
+from chisel.io.import_poses import match_poses_by_time
 from chisel.io.undistort import Circle, circle_mask, fit_field_stop, make_undistortion
 
 # derandomize: CI runs the same examples every time (the project wants reproducible runs).

@@ -41,15 +41,10 @@ from chisel.core.errors import (
 )
 from chisel.core.geometry import Camera
 from chisel.io.calibration import read_calibration, write_opencv_calibration
-from chisel.io.importers import (
-    FrameConfig,
-    PoseConfig,
-    import_images,
-    import_reference,
-    import_video,
-    load_npy,
-    read_pose_file,
-)
+from chisel.io.import_common import load_npy
+from chisel.io.import_frames import FrameConfig, FrameFiles, import_images, import_video
+from chisel.io.import_poses import PoseConfig, read_pose_file
+from chisel.io.import_reference import import_reference
 from chisel.io.sequence import Sequence, write_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -83,11 +78,11 @@ def test_depth_in_metres(scene, data) -> None:
     for i, d in enumerate(scene.raw_depth):
         np.save(data / "depth" / f"{i}.npy", np.nan_to_num(d) / 1000.0)
     with pytest.raises(DepthUnitsError, match=r"depth[/\\]0\.npy.*metres"):
-        run_images(data, depth_dir=data / "depth")
+        run_images(data, files=FrameFiles(depth_dir=data / "depth"))
     assert not (data / "seq").exists()
     run_images(
         data,
-        depth_dir=data / "depth",
+        files=FrameFiles(depth_dir=data / "depth"),
         frame_cfg=FrameConfig(field_stop="none", depth_scale_mm=1000.0),
     )
     assert Sequence(data / "seq").has_depth
@@ -141,7 +136,7 @@ def test_depth_folder_count_mismatch(scene, data) -> None:
     for i, d in enumerate(scene.raw_depth[:5]):
         np.save(data / "depth" / f"{i}.npy", np.nan_to_num(d))
     with pytest.raises(InvalidInputError, match=r"depth: has 5 files but .*rgb has 6 frames"):
-        run_images(data, depth_dir=data / "depth")
+        run_images(data, files=FrameFiles(depth_dir=data / "depth"))
 
 
 def test_frame_time_count_mismatch(scene, data) -> None:
@@ -158,7 +153,7 @@ def test_frame_time_count_mismatch(scene, data) -> None:
             data / "calib.yaml",
             data / "seq",
             pose_cfg=PoseConfig(match="timestamp"),
-            frame_times_path=data / "times.csv",
+            files=FrameFiles(frame_times_path=data / "times.csv"),
             frame_cfg=NO_STOP,
         )
 
@@ -356,7 +351,7 @@ def test_mask_of_wrong_size(scene, data) -> None:
             str(data / "tools" / f"{i}.png"), np.zeros((80, 96) if i != 2 else (40, 48), np.uint8)
         )
     with pytest.raises(CameraError, match=r"tools[/\\]2\.png: image is 48x40"):
-        run_images(data, mask_dir=data / "tools")
+        run_images(data, files=FrameFiles(mask_dir=data / "tools"))
 
 
 def test_field_stop_that_keeps_nothing(data) -> None:
@@ -518,7 +513,7 @@ def test_disk_full_keeps_the_previous_output(scene, data, monkeypatch, where) ->
     (data / "depth").mkdir()
     for i, d in enumerate(scene.raw_depth):
         np.save(data / "depth" / f"{i}.npy", np.nan_to_num(d))
-    run_images(data, depth_dir=data / "depth")
+    run_images(data, files=FrameFiles(depth_dir=data / "depth"))
     before = {
         p.relative_to(data / "seq"): p.read_bytes()
         for p in (data / "seq").rglob("*")
@@ -546,7 +541,7 @@ def test_disk_full_keeps_the_previous_output(scene, data, monkeypatch, where) ->
 
         monkeypatch.setattr(seqmod.cv2, "imwrite", full_imwrite)
     with pytest.raises(OutputError, match=r"seq: cannot write output") as exc:
-        run_images(data, depth_dir=data / "depth")
+        run_images(data, files=FrameFiles(depth_dir=data / "depth"))
     assert isinstance(exc.value, OSError)
     if where == "np.save":
         assert exc.value.errno == errno.ENOSPC

@@ -7,14 +7,9 @@ import logging
 from pathlib import Path
 
 from chisel.cli.args import Output, finite_float
-from chisel.io.importers import (
-    FrameConfig,
-    PoseConfig,
-    import_images,
-    import_reference,
-    import_video,
-    read_transform,
-)
+from chisel.io.import_frames import FrameConfig, FrameFiles, import_images, import_video
+from chisel.io.import_poses import PoseConfig, read_transform
+from chisel.io.import_reference import import_reference
 from chisel.io.undistort import Circle
 
 log = logging.getLogger(__name__)
@@ -118,10 +113,12 @@ def _run_frames(args: argparse.Namespace) -> int:
         args.out,
         pose_cfg=pose_cfg,
         frame_cfg=frame_cfg,
-        frame_times_path=args.frame_times,
-        depth_dir=args.depth,
-        mask_dir=args.masks,
-        camera_mask_path=args.camera_mask,
+        files=FrameFiles(
+            frame_times_path=args.frame_times,
+            depth_dir=args.depth,
+            mask_dir=args.masks,
+            camera_mask_path=args.camera_mask,
+        ),
         progress=True,
     )
     log.info(
