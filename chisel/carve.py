@@ -252,9 +252,9 @@ def carve_first_layer(
         int(max_layers), z0, z1,
     )  # fmt: skip
     use_reset = reset is not None
-    if use_reset and (reset.shape != model.shape or reset.dtype != np.uint8):
+    if reset is not None and (reset.shape != model.shape or reset.dtype != np.uint8):
         raise InvalidInputError("reset", f"expected {model.shape} uint8, got {reset.shape}")
-    r = _flat(reset, "reset") if use_reset else np.zeros(1, np.uint8)
+    r = _flat(reset, "reset") if reset is not None else np.zeros(1, np.uint8)
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
     box = _deleted_voxel_box(model, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
     if box is None:

@@ -473,7 +473,7 @@ def integrate(
     camera.check_image(depth, "depth_mm")
     depth = _clean_depth(depth)
     use_weight = pixel_weight is not None
-    if not use_weight:
+    if pixel_weight is None:
         pix_w = np.ones((1, 1), dtype=np.float32)  # not read
     else:
         camera.check_image(pixel_weight, "pixel_weight")
@@ -482,6 +482,7 @@ def integrate(
             raise InvalidInputError("pixel_weight", "weights must be finite and >= 0")
     use_color = model.color is not None and rgb is not None
     if use_color:
+        assert rgb is not None and model.color is not None  # use_color
         camera.check_image(rgb, "rgb")
         rgb_arr = np.ascontiguousarray(rgb, dtype=np.uint8)
         color = model.color
@@ -489,7 +490,7 @@ def integrate(
         rgb_arr = np.zeros((1, 1, 3), dtype=np.uint8)
         color = np.zeros((1, 1, 1, 3), dtype=np.uint8)
     use_reset = reset is not None
-    if use_reset:
+    if reset is not None:
         if reset.shape != model.shape or reset.dtype != np.uint8:
             raise InvalidInputError(
                 "reset", f"expected {model.shape} uint8, got {reset.shape} {reset.dtype}"
@@ -498,7 +499,7 @@ def integrate(
     else:
         reset_arr = np.zeros((1, 1, 1), dtype=np.uint8)
     use_lateral = lateral_px is not None
-    if use_lateral:
+    if lateral_px is not None:
         camera.check_image(lateral_px, "lateral_px")
         lateral = np.ascontiguousarray(lateral_px, dtype=np.float32)
     else:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from chisel.core.geometry import ivec3, vec3
 from chisel.core.raycast import SurfaceQueries
 
 HU_AIR = -1000.0
@@ -69,14 +70,14 @@ class CTGrid:
 
     def index_box(
         self, box_min_mm: np.ndarray, box_max_mm: np.ndarray
-    ) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    ) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
         """Smallest index box ``[lo, hi)`` whose voxel centres cover the world box."""
         o = np.asarray(self.origin_mm)
         lo = np.floor((np.asarray(box_min_mm) - o) / self.spacing_mm).astype(int)
         hi = np.ceil((np.asarray(box_max_mm) - o) / self.spacing_mm).astype(int) + 1
         lo = np.clip(lo, 0, self.shape)
         hi = np.clip(hi, 0, self.shape)
-        return tuple(int(v) for v in lo), tuple(int(v) for v in hi)
+        return ivec3(lo), ivec3(hi)
 
 
 def grid_for_box(box_min_mm, box_max_mm, spacing_mm: float) -> CTGrid:
@@ -90,7 +91,7 @@ def grid_for_box(box_min_mm, box_max_mm, spacing_mm: float) -> CTGrid:
         np.ceil((np.asarray(box_max_mm, float) + 2.0 * spacing_mm - lo) / spacing_mm).astype(int)
         + 1
     )
-    return CTGrid(tuple(float(v) for v in lo), tuple(int(v) for v in n), float(spacing_mm))
+    return CTGrid(vec3(lo), ivec3(n), float(spacing_mm))
 
 
 def grid_for_block(block_min_mm, block_max_mm, spacing_mm: float, inset_mm: float) -> CTGrid:
@@ -108,7 +109,7 @@ def grid_for_block(block_min_mm, block_max_mm, spacing_mm: float, inset_mm: floa
     lo[1] = bmin[1] - 2.25 * spacing_mm
     hi = bmax - inset_mm
     n = np.floor((hi - lo) / spacing_mm).astype(int) + 1
-    return CTGrid(tuple(float(v) for v in lo), tuple(int(v) for v in n), float(spacing_mm))
+    return CTGrid(vec3(lo), ivec3(n), float(spacing_mm))
 
 
 class SurfaceDistance(SurfaceQueries):
