@@ -61,15 +61,14 @@ from chisel.fusion import (
     check_pose_in_model,
     integrate,
 )
+from chisel.icp import SurfaceIndex, icp_similarity
 from chisel.io.sequence import Frame, check_depth_mm
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
 from chisel.registration import (
     RegistrationConfig,
     RegistrationResult,
-    SurfaceIndex,
     check_result,
-    icp_similarity,
     register_global,
     robust_mean_transform,
 )

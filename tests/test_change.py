@@ -109,7 +109,7 @@ def test_change_config_checks() -> None:
 
 
 def test_surface_index_lookup_matches_tree() -> None:
-    from chisel.registration import SurfaceIndex
+    from chisel.icp import SurfaceIndex
 
     rng = np.random.default_rng(1)
     pts = rng.normal(size=(4000, 3))
