@@ -29,6 +29,7 @@ from typing import Literal
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import transform_points
@@ -222,7 +223,7 @@ def ct_tsdf(
 def check_ct_covers_views(
     ct: CtInput,
     poses: np.ndarray,
-    miss_fractions: Sequence[float],
+    miss_fractions: ArrayLike,
     max_miss_fraction: float,
     option: str = "--ct",
 ) -> None:

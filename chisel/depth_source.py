@@ -128,7 +128,7 @@ class CallableDepth:
         return self.fn(frame)
 
 
-def is_metric(source: Callable[[Frame], np.ndarray]) -> bool:
+def is_metric(source: object) -> bool:
     """True if ``source`` declares millimetre depth (``is_metric`` attribute)."""
     return bool(getattr(source, "is_metric", False))
 

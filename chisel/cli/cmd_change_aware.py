@@ -146,9 +146,11 @@ def finetune(args: argparse.Namespace) -> int:
 
         from chisel.depth.change_train import PriorSet  # noqa: PLC0415
 
+        def cat(key: str) -> torch.Tensor:
+            return torch.cat([getattr(p, key) for p, _ in parts])
+
         pairs = PriorSet(
-            *(torch.cat([getattr(p, k) for p, _ in parts]) for k in
-              ("rgb", "prior_mm", "target_mm", "changed")),
+            cat("rgb"), cat("prior_mm"), cat("target_mm"), cat("changed"),
             sum((p.sources for p, _ in parts), []),
         )  # fmt: skip
     cfg = ChangeTrainConfig.finetune_defaults(

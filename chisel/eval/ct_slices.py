@@ -379,7 +379,8 @@ def write_ct_slices(path: str | Path, slices: Sequence[CtSlice]) -> Path:
     arrays["meta"] = np.array(json.dumps(meta))
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+            # allow_pickle: numpy's default, named so that **arrays cannot stand for it
+            np.savez_compressed(fh, allow_pickle=True, **arrays)
     return Path(path)
 
 

@@ -293,7 +293,7 @@ def mesh_figure(meshes: ReportMeshes) -> go.Figure:
     uv, uf = decimate(meshes.updated, meshes.max_faces)
     dist = point_to_mesh_distance(uv, meshes.preop).astype(np.float32)
     thr = float(meshes.removed_threshold_mm)
-    cmax = float(max(2.0 * thr, np.percentile(dist, 99.5)))
+    cmax = max(2.0 * thr, float(np.percentile(dist, 99.5)))
     k = thr / cmax
     colorscale = [
         [0.0, "rgb(200,200,200)"],
