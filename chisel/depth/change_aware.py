@@ -116,7 +116,10 @@ class ChangeNetConfig:
                 f"unknown ChangeNetConfig field(s) {sorted(unknown)}; known: {sorted(known)}",
             )
         try:
-            return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+            values: dict[str, Any] = {
+                k: tuple(v) if isinstance(v, list) else v for k, v in d.items()
+            }
+            return cls(**values)
         except TypeError as exc:
             raise InvalidInputError(source, f"bad ChangeNetConfig: {exc}") from None
 
@@ -153,6 +156,7 @@ class ChangeNet(nn.Module):
         self.up = nn.ModuleList([_conv(w[k + 1] + w[k], w[k]) for k in range(len(w) - 2, -1, -1)])
         self.head = nn.Conv2d(w[0], 2, 3, 1, 1)
         nn.init.zeros_(self.head.weight)
+        assert self.head.bias is not None  # Conv2d has a bias by default
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

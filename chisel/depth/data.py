@@ -76,6 +76,7 @@ def read_dataset_index(path: str | Path) -> list[SequenceRef]:
     refs = []
     for i, entry in enumerate(entries):
         where = f"{path} sequences[{i}]"
+        rel: object
         if isinstance(entry, str):
             rel, seed = entry, None
         elif isinstance(entry, dict):

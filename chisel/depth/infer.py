@@ -134,8 +134,8 @@ def load_depth_source(
         # this 2-core CPU (benchmarks/bench_depth.py), mostly less Python overhead.
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", "`torch.jit", DeprecationWarning)
-            module: torch.nn.Module = torch.jit.script(predictor)
-        return NetworkDepthSource(module, device, f"checkpoint {path} (scripted)")
+            scripted: torch.nn.Module = torch.jit.script(predictor)
+        return NetworkDepthSource(scripted, device, f"checkpoint {path} (scripted)")
     return NetworkDepthSource(predictor, device, f"checkpoint {path}")
 
 
@@ -197,6 +197,7 @@ def evaluate_source(source: Any, sequences: list[Sequence]) -> DepthMetrics:
         if not (seq.has_rgb and seq.has_depth):
             raise InvalidInputError(seq.path, "evaluation needs RGB and depth")
         for f in seq:
+            assert f.depth_mm is not None  # seq.has_depth
             acc.add(source(f), f.depth_mm, f.mask)
     return acc.result()
 

@@ -87,7 +87,10 @@ class DepthNetConfig:
                 source, f"unknown DepthNetConfig field(s) {sorted(unknown)}; known: {sorted(known)}"
             )
         try:
-            return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+            values: dict[str, Any] = {
+                k: tuple(v) if isinstance(v, list) else v for k, v in d.items()
+            }
+            return cls(**values)
         except TypeError as exc:
             raise InvalidInputError(source, f"bad DepthNetConfig: {exc}") from None
 
@@ -145,6 +148,7 @@ class DepthNet(nn.Module):
         self.head = nn.Conv2d(top, 1, 3, 1, 1)
         # Start near depth = e^2.5 ~ 12 mm, a typical endoscopic working distance.
         nn.init.zeros_(self.head.weight)
+        assert self.head.bias is not None  # Conv2d has a bias by default
         nn.init.constant_(self.head.bias, 2.5)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

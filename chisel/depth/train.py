@@ -134,11 +134,13 @@ def deterministic(seed: int, device: torch.device, num_threads: int | None) -> I
     prev_det = torch.are_deterministic_algorithms_enabled()
     prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     prev_threads = torch.get_num_threads()
-    prev_fill = torch.utils.deterministic.fill_uninitialized_memory
+    # fill_uninitialized_memory is a property of the module's class (torch swaps it in),
+    # which type checkers cannot see: hence the attr-defined ignores.
+    prev_fill = torch.utils.deterministic.fill_uninitialized_memory  # type: ignore[attr-defined]
     torch.use_deterministic_algorithms(True, warn_only=device.type == "cuda")
     # Deterministic mode NaN-fills every new empty tensor (a quarter of a CPU training step
     # here); results never read uninitialised memory, so the fill buys nothing.
-    torch.utils.deterministic.fill_uninitialized_memory = False
+    torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]
     if num_threads is not None:
         torch.set_num_threads(num_threads)
     torch.manual_seed(seed)
@@ -147,7 +149,7 @@ def deterministic(seed: int, device: torch.device, num_threads: int | None) -> I
     finally:
         torch.use_deterministic_algorithms(prev_det, warn_only=prev_warn)
         torch.set_num_threads(prev_threads)
-        torch.utils.deterministic.fill_uninitialized_memory = prev_fill
+        torch.utils.deterministic.fill_uninitialized_memory = prev_fill  # type: ignore[attr-defined]
 
 
 def _set_train_mode(net: DepthNet, freeze_bn: bool) -> None:
@@ -213,7 +215,8 @@ def train(
     c0 = time.process_time()
     with deterministic(cfg.seed, device, cfg.num_threads):
         net = copy.deepcopy(init) if init is not None else DepthNet(net_config)
-        net = net.to(device).to(memory_format=torch.channels_last)
+        # Module.to accepts memory_format at run time; torch's overloads of it omit it
+        net = net.to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         predictor = DepthPredictor(net).to(device)
         n = len(frames)
         bs = min(cfg.batch_size, n)
