@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, cast
 
 import cv2
 import numpy as np
@@ -547,7 +547,12 @@ class ChiselUpdater:
         Frames not used (failed registration) only join the step's report.
         """
         if rep.used:
-            if rep.mask is None or rep.m_prime is None or rep.m_t is None:
+            if (
+                rep.mask is None
+                or rep.m_prime is None
+                or rep.m_t is None
+                or rep.T_world_from_cam is None
+            ):
                 raise InvalidInputError("rep", f"frame {rep.index}: maps already dropped")
             mask = rep.mask
             fuse_mask = mask
@@ -729,14 +734,18 @@ def update_step(
         scale_free = _scale_free(cfg, depth_source)
         if scale_free:
             # Solved once per frame; every stage below starts from the same scales.
-            scales = [_try_scale(R, E, cfg) for R, E in zip(renders, estimates, strict=True)]
+            # Every render exists when registering (rendered above for the step).
+            scales = [
+                _try_scale(cast(np.ndarray, R), E, cfg)
+                for R, E in zip(renders, estimates, strict=True)
+            ]
         else:
             scales = [1.0] * len(frames)
         # The tracker first: ICP from the tracked poses. A global search (FPFH + RANSAC over
         # the whole step) only when that fails: on a monocular estimate, whose shape is not
         # quite the model's, it can lock onto a fit rotated by several degrees, which then
         # carves unchanged tissue (6-12 deg on the default experiment's network depth).
-        args = (renderer, camera, poses, estimates, scales)
+        args = (cast(ModelRenderer, renderer), camera, poses, estimates, scales)
         F, he = _hand_eye(*args, np.eye(4), cfg, scale_free)
         seq_reg = {"ok": True, "method": "tracker", "reason": "ICP from the tracked poses"}
         if cfg.sequence_ransac and (F is None or he["fitness_median"] < MIN_TRACKER_FITNESS):
@@ -800,8 +809,9 @@ def confirm_changes(reps: list[FrameReport], camera: Camera, cfg: ChangeConfig) 
             [getattr(r, name) if r.used else np.full(shape, fill, np.float32) for r in reps]
         )
 
-    masks = np.stack([r.mask if r.used else np.zeros(shape, bool) for r in reps])
-    poses = np.stack([r.T_world_from_cam if r.used else np.eye(4) for r in reps])
+    # A used report keeps its mask and pose until fused.
+    masks = np.stack([cast(np.ndarray, r.mask) if r.used else np.zeros(shape, bool) for r in reps])
+    poses = np.stack([cast(np.ndarray, r.T_world_from_cam) if r.used else np.eye(4) for r in reps])
     support, observed = multiview_support(
         masks, stack("m_t", np.nan), stack("m_raw", np.nan), camera, poses, used,
         np.array([r.threshold_mm if r.used else np.inf for r in reps]), cfg.visible_mm,
@@ -851,7 +861,7 @@ def _hand_eye(
         usable = [usable[i] for i in pick]
     Fs, fits = [], []
     for i in usable:
-        T, E, s0 = poses[i], estimates[i], float(scales[i])
+        T, E, s0 = poses[i], estimates[i], float(cast(float, scales[i]))
         src = _points(camera, s0 * E, T, cfg.sequence_points)
         if len(src) < 10:
             continue

@@ -216,7 +216,9 @@ class ChangeAwarePredictor(nn.Module):
         b = rgb.shape[0]
         h = rgb.shape[1]
         w = rgb.shape[2]
-        x = (rgb.permute(0, 3, 1, 2).float() - self.mean) / self.std
+        mean = torch.jit.annotate(torch.Tensor, self.mean)  # a buffer: typed for mypy
+        std = torch.jit.annotate(torch.Tensor, self.std)
+        x = (rgb.permute(0, 3, 1, 2).float() - mean) / std
         prior = prior_mm.float()
         valid = torch.isfinite(prior) & (prior > 0)
         safe = torch.where(valid, prior, torch.ones_like(prior))

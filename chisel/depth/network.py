@@ -205,7 +205,9 @@ class DepthPredictor(nn.Module):
         h = rgb.shape[1]
         w = rgb.shape[2]
         x = rgb.permute(0, 3, 1, 2).float()
-        x = (x - self.mean) / self.std
+        x = (x - torch.jit.annotate(torch.Tensor, self.mean)) / torch.jit.annotate(
+            torch.Tensor, self.std
+        )
         sh, sw = self.net_size(h, w)
         if sh != h or sw != w:
             x = F.interpolate(x, size=(sh, sw), mode="area")
