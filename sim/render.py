@@ -136,78 +136,16 @@ class MeshRenderer:
             mi.Vector3f(np.ascontiguousarray(dirs.reshape(-1, 3).T)) if self.jit else None
         )
 
-        props = mi.Properties()
-        if not self.depth_only:
-            assert texture is not None
-            mucosa = self._principled_dict(texture)
-            if cut is None:
-                props["bsdf"] = mi.load_dict(mucosa)
-            else:
-                assert cut_texture is not None
-                props["bsdf"] = mi.load_dict(
-                    {
-                        "type": "blendbsdf",
-                        "weight": {"type": "mesh_attribute", "name": "face_cut"},
-                        "bsdf_0": mucosa,
-                        "bsdf_1": self._principled_dict(cut_texture),
-                    }
-                )
+        props = self._tissue_properties(texture, cut, cut_texture)
         self.mesh = self._mi_mesh("tissue", mesh, props, with_normals=not self.depth_only)
         if cut is not None:
             self.mesh.add_attribute("face_cut", 1, self._buffer(cut.astype(np.float32)))
         self._tool_meshes: list = []
         if tools is not None:
-            for k, tm in enumerate(tools.meshes):
-                tprops = mi.Properties()
-                if not self.depth_only:
-                    # Brushed steel: a rough conductor plus a little diffuse scattering
-                    # (Mitsuba's blendbsdf), so the metal is not black away from highlights.
-                    tprops["bsdf"] = mi.load_dict(
-                        {
-                            "type": "blendbsdf",
-                            "weight": float(cfg.tools.diffuse),
-                            "bsdf_0": {
-                                "type": "roughconductor",
-                                "material": cfg.tools.material,
-                                "distribution": "ggx",
-                                "alpha": float(cfg.tools.roughness),
-                            },
-                            "bsdf_1": {"type": "diffuse", "reflectance": 0.55},
-                        }
-                    )
-                self._tool_meshes.append(
-                    self._mi_mesh(f"tool_{k}", tm, tprops, with_normals=not self.depth_only)
-                )
-            self._tool_local = [
-                (
-                    np.asarray(tm.vertices, dtype=np.float64),
-                    np.asarray(tm.vertex_normals, dtype=np.float64),
-                )
-                for tm in tools.meshes
-            ]
-            # Where an unused instrument waits: collapsed to a point far outside the tissue.
-            self._park_mm = np.asarray(mesh.bounds[1], dtype=np.float64) + 1.0e4
+            self._add_tools(tools, mesh)
 
         spp = int(cfg.imaging.spp)
-        square = int(round(spp**0.5)) ** 2 == spp
-        scene: dict = {"type": "scene", "tissue": self.mesh}
-        for k, tm in enumerate(self._tool_meshes):
-            scene[f"tool_{k}"] = tm
-        if not self.depth_only:
-            scene["integrator"] = {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
-            scene["sensor"] = self._sensor_dict(
-                {"type": "stratified", "sample_count": spp}
-                if square
-                else {"type": "independent", "sample_count": spp},
-                "rgb",
-            )
-            lc = cfg.light
-            scene["light"] = {
-                "type": "spot",
-                "intensity": {"type": "rgb", "value": float(lc.intensity)},
-                "cutoff_angle": float(lc.cutoff_deg),
-                "beam_width": float(lc.beam_width_deg),
-            }
+        scene = self._scene_dict(spp)
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         # Ground-truth tissue depth ignores instruments: with tools it comes from a
@@ -244,6 +182,95 @@ class MeshRenderer:
             )
             self._gain_used = mi.Float(self._gain.ravel()[self.field_stop.ravel()])
 
+    def _tissue_properties(
+        self,
+        texture: TextureVolume | None,
+        cut: np.ndarray | None,
+        cut_texture: TextureVolume | None,
+    ) -> Any:
+        """The tissue mesh's Mitsuba properties: the mucosa's principled BSDF, blended
+        per face with the cut tissue's where faces are labelled cut; none for depth."""
+        mi = self.mi
+        props = mi.Properties()
+        if self.depth_only:
+            return props
+        assert texture is not None
+        mucosa = self._principled_dict(texture)
+        if cut is None:
+            props["bsdf"] = mi.load_dict(mucosa)
+        else:
+            assert cut_texture is not None
+            props["bsdf"] = mi.load_dict(
+                {
+                    "type": "blendbsdf",
+                    "weight": {"type": "mesh_attribute", "name": "face_cut"},
+                    "bsdf_0": mucosa,
+                    "bsdf_1": self._principled_dict(cut_texture),
+                }
+            )
+        return props
+
+    def _add_tools(self, tools: ToolSet, mesh: trimesh.Trimesh) -> None:
+        """The instruments' Mitsuba meshes (brushed steel), their local geometry and the
+        parking place of an unused one."""
+        mi = self.mi
+        cfg = self.cfg
+        for k, tm in enumerate(tools.meshes):
+            tprops = mi.Properties()
+            if not self.depth_only:
+                # Brushed steel: a rough conductor plus a little diffuse scattering
+                # (Mitsuba's blendbsdf), so the metal is not black away from highlights.
+                tprops["bsdf"] = mi.load_dict(
+                    {
+                        "type": "blendbsdf",
+                        "weight": float(cfg.tools.diffuse),
+                        "bsdf_0": {
+                            "type": "roughconductor",
+                            "material": cfg.tools.material,
+                            "distribution": "ggx",
+                            "alpha": float(cfg.tools.roughness),
+                        },
+                        "bsdf_1": {"type": "diffuse", "reflectance": 0.55},
+                    }
+                )
+            self._tool_meshes.append(
+                self._mi_mesh(f"tool_{k}", tm, tprops, with_normals=not self.depth_only)
+            )
+        self._tool_local = [
+            (
+                np.asarray(tm.vertices, dtype=np.float64),
+                np.asarray(tm.vertex_normals, dtype=np.float64),
+            )
+            for tm in tools.meshes
+        ]
+        # Where an unused instrument waits: collapsed to a point far outside the tissue.
+        self._park_mm = np.asarray(mesh.bounds[1], dtype=np.float64) + 1.0e4
+
+    def _scene_dict(self, spp: int) -> dict:
+        """The Mitsuba scene: tissue, instruments and, for colour, the direct integrator,
+        the sensor and the tip's spot light."""
+        cfg = self.cfg
+        square = int(round(spp**0.5)) ** 2 == spp
+        scene: dict = {"type": "scene", "tissue": self.mesh}
+        for k, tm in enumerate(self._tool_meshes):
+            scene[f"tool_{k}"] = tm
+        if not self.depth_only:
+            scene["integrator"] = {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
+            scene["sensor"] = self._sensor_dict(
+                {"type": "stratified", "sample_count": spp}
+                if square
+                else {"type": "independent", "sample_count": spp},
+                "rgb",
+            )
+            lc = cfg.light
+            scene["light"] = {
+                "type": "spot",
+                "intensity": {"type": "rgb", "value": float(lc.intensity)},
+                "cutoff_angle": float(lc.cutoff_deg),
+                "beam_width": float(lc.beam_width_deg),
+            }
+        return scene
+
     def _principled_dict(self, texture: TextureVolume) -> dict:
         """The tissue's principled BSDF over a baked colour volume (Mitsuba dict)."""
         mi = self.mi
@@ -263,9 +290,7 @@ class MeshRenderer:
             "specular": float(self.cfg.appearance.specular),
         }
 
-    def _mi_mesh(
-        self, name: str, mesh: trimesh.Trimesh, props: Any, with_normals: bool
-    ) -> Any:
+    def _mi_mesh(self, name: str, mesh: trimesh.Trimesh, props: Any, with_normals: bool) -> Any:
         mi = self.mi
         m = mi.Mesh(
             name, len(mesh.vertices), len(mesh.faces), props=props, has_vertex_normals=with_normals
