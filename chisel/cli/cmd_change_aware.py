@@ -2,20 +2,23 @@
 
 Thin wrappers: read the dataset / sequence / mesh, call :mod:`chisel.depth.change_train`,
 write the checkpoint (``kind: change-aware``) with the exact command that reproduces it.
+Called by ``chisel.cli.cmd_depth`` (which hands over the canonical command line and the
+environment; this module does not import it back).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
 
-from chisel.cli.cmd_depth import _canonical_command, _environment, _sha256
 from chisel.core.errors import InvalidInputError
 from chisel.depth.change_aware import (
     ChangeAwarePredictor,
@@ -68,6 +71,14 @@ FINETUNE_OPTS = [
 ]
 
 
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def _split_seeds(seeds: list[int], val_fraction: float, seed: int) -> set[int]:
     if not 0.0 <= val_fraction < 1.0:
         raise InvalidInputError("--val-fraction", f"must be in [0, 1), got {val_fraction}")
@@ -78,8 +89,8 @@ def _split_seeds(seeds: list[int], val_fraction: float, seed: int) -> set[int]:
     return set(rng.choice(seeds, size=n_val, replace=False).tolist()) if n_val else set()
 
 
-def train(args: argparse.Namespace) -> int:
-    """``chisel depth train --kind change-aware``."""
+def train(args: argparse.Namespace, command: str, environment: dict[str, Any]) -> int:
+    """``chisel depth train --kind change-aware``; command : the canonical command line."""
     refs = read_step_dataset(args.data)
     check_change_training_seeds(refs)
     seeds = sorted({r.seed for r in refs})
@@ -102,7 +113,7 @@ def train(args: argparse.Namespace) -> int:
     result = train_change_aware(pairs, cfg, net_config, val_pairs=val_pairs, progress=True)
     info = {
         "kind": "train",
-        "command": _canonical_command(args, TRAIN_OPTS),
+        "command": command,
         "train_phantom_seeds": sorted(set(seeds) - val_seeds),
         "val_phantom_seeds": sorted(val_seeds),
         "train_sequences": [str(r.path) for r in train_refs],
@@ -118,7 +129,7 @@ def train(args: argparse.Namespace) -> int:
         "train_seconds": round(result.seconds, 1),
         "history": result.history,
         "note": args.note,
-        "environment": _environment(),
+        "environment": environment,
     }
     save_change_checkpoint(args.out, result.net, info)
     summary = {"checkpoint": str(args.out), "val_metrics": result.val_metrics}
@@ -126,7 +137,7 @@ def train(args: argparse.Namespace) -> int:
     return 0
 
 
-def finetune(args: argparse.Namespace) -> int:
+def finetune(args: argparse.Namespace, command: str, environment: dict[str, Any]) -> int:
     """``chisel depth finetune --kind change-aware --mesh CT_SURFACE``."""
     if args.mesh is None:
         raise InvalidInputError(
@@ -164,7 +175,7 @@ def finetune(args: argparse.Namespace) -> int:
     result = train_change_aware(pairs, cfg, init=net, progress=True)
     info = {
         "kind": "finetune",
-        "command": _canonical_command(args, FINETUNE_OPTS),
+        "command": command,
         "target": targets,
         "parent_checkpoint": str(parent),
         "parent_sha256": _sha256(parent),
@@ -174,7 +185,7 @@ def finetune(args: argparse.Namespace) -> int:
         "train_config": cfg.to_dict(),
         "train_seconds": round(result.seconds, 1),
         "history": result.history,
-        "environment": _environment(),
+        "environment": environment,
     }
     save_change_checkpoint(args.out, result.net, info)
     final = result.history[-1]["loss"] if result.history else None

@@ -166,9 +166,10 @@ _TRAIN_OPTS = [
 
 def _cmd_train(args: argparse.Namespace) -> int:
     if _change_aware(args):
-        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - imports this module
+        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - torch-heavy, only when asked
 
-        return cmd_change_aware.train(args)
+        opts = cmd_change_aware.TRAIN_OPTS
+        return cmd_change_aware.train(args, _canonical_command(args, opts), _environment())
     out = Path(args.out)
     refs = find_sequences(args.data)
     check_training_seeds(refs)
@@ -251,9 +252,10 @@ _FINETUNE_OPTS = [
 
 def _cmd_finetune(args: argparse.Namespace) -> int:
     if _change_aware(args):
-        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - imports this module
+        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - torch-heavy, only when asked
 
-        return cmd_change_aware.finetune(args)
+        opts = cmd_change_aware.FINETUNE_OPTS
+        return cmd_change_aware.finetune(args, _canonical_command(args, opts), _environment())
     parent = Path(args.checkpoint)
     net, parent_info = load_checkpoint(parent)
     refs = [SequenceRef(Path(p), None) for p in args.sequence]
@@ -316,7 +318,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     if args.kind == "change-aware":
-        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - imports this module
+        from chisel.cli import cmd_change_aware  # noqa: PLC0415 - torch-heavy, only when asked
 
         return cmd_change_aware.export(args)
     net, _ = load_checkpoint(args.checkpoint)
