@@ -15,7 +15,7 @@ import numpy as np
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, check_rigid, invert_rigid
-from chisel.fusion import TILE_PX, _camera_tiles, _flat
+from chisel.fusion import TILE_PX, _camera_tiles, _flat, distort
 from chisel.model import TsdfModel
 
 CARVE_NONE = 0
@@ -151,9 +151,7 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                 if r2 > r2_max:
                     continue
                 if distorted:
-                    radial = 1.0 + r2 * (k1_ + r2 * (k2_ + r2 * k3_))
-                    xd = xc * radial + 2.0 * p1_ * xc * yc + p2_ * (r2 + 2.0 * xc * xc)
-                    yd = yc * radial + p1_ * (r2 + 2.0 * yc * yc) + 2.0 * p2_ * xc * yc
+                    xd, yd = distort(xc, yc, k1_, k2_, p1_, p2_, k3_)
                 else:
                     xd = xc
                     yd = yc

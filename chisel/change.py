@@ -24,6 +24,7 @@ import numpy as np
 from chisel.core.config import check_fields
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
+from chisel.fusion import distort
 
 MIN_SCALE_PIXELS = 50
 """Fewest pixels valid in both the render and the estimate for a scale to be solved."""
@@ -157,12 +158,7 @@ def reproject_depth(
 @numba.njit(cache=True, inline="always")
 def _pixel_of(X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3):
     """Nearest raw (distorted) pixel (u, v) of a camera-frame point with Z > 0."""
-    xn = X / Z
-    yn = Y / Z
-    r2 = xn * xn + yn * yn
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+    xd, yd = distort(X / Z, Y / Z, k1, k2, p1, p2, k3)
     return int(np.floor(fx * xd + cx + 0.5)), int(np.floor(fy * yd + cy + 0.5))
 
 

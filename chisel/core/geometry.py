@@ -123,6 +123,19 @@ def look_at(eye_mm: np.ndarray, target_mm: np.ndarray, up: np.ndarray) -> np.nda
     return make_transform(np.stack([x, y, z], axis=1), eye)
 
 
+def distort_normalized(x, y, k1, k2, p1, p2, k3):  # noqa: ANN001, ANN201 - arrays or numba scalars
+    """OpenCV's lens model on normalised coordinates: undistorted (x, y) -> distorted.
+
+    The one home of the polynomial: :meth:`Camera.project` calls it on arrays, and the
+    numba kernels (fusion, carving, change) compile it inline (``chisel.fusion.distort``).
+    """
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return xd, yd
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole camera with OpenCV distortion, in pixels.
@@ -269,12 +282,7 @@ class Camera:
             y = p[..., 1] / z
         if self.has_distortion:
             k1, k2, p1, p2, k3 = self.dist
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            x, y = (
-                x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-                y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-            )
+            x, y = distort_normalized(x, y, k1, k2, p1, p2, k3)
         return np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=-1), z
 
     def backproject(self, depth_mm: np.ndarray) -> np.ndarray:
