@@ -594,7 +594,11 @@ def test_cli_train_finetune_export_evaluate(
     (bad / "dataset.json").write_text(
         json.dumps({"sequences": [{"path": str(dataset / "seq_1000"), "phantom_seed": 7}]})
     )
-    rc = cli.main(["depth", "train", "--data", str(bad), "--out", str(tmp_path / "x.pt")])
+    argv = ["depth", "train", "--data", str(bad), "--out", str(tmp_path / "x.pt")]
+    # The index names a folder outside its own: refused unless allowed (a manifest).
+    rc = cli.main(argv)
+    assert rc == 1 and "--allow-outside-manifest" in capsys.readouterr().err
+    rc = cli.main([*argv, "--allow-outside-manifest"])
     assert rc == 1 and "evaluation seeds" in capsys.readouterr().err
     assert not (tmp_path / "x.pt").exists()
 

@@ -171,7 +171,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         opts = cmd_change_aware.TRAIN_OPTS
         return cmd_change_aware.train(args, _canonical_command(args, opts), _environment())
     out = Path(args.out)
-    refs = find_sequences(args.data)
+    refs = find_sequences(args.data, args.allow_outside_manifest)
     check_training_seeds(refs)
     train_refs, val_refs = split_by_group(refs, args.val_fraction, args.seed)
     log.info(
@@ -309,7 +309,7 @@ def _cmd_predict(args: argparse.Namespace) -> int:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     source = load_depth_source(args.checkpoint, device=args.device)
-    refs = find_sequences(args.data)
+    refs = find_sequences(args.data, args.allow_outside_manifest)
     metrics = evaluate_source(source, [Sequence(r.path) for r in refs])
     doc = {"checkpoint": str(args.checkpoint), "sequences": len(refs), **metrics.to_dict()}
     sys.stdout.write(json.dumps(doc) + "\n")
@@ -378,6 +378,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         nargs="+",
         required=True,
         help="dataset folders (dataset.json), dataset.json files or sequence folders",
+    )
+    t.add_argument(
+        "--allow-outside-manifest",
+        action="store_true",
+        help="let a dataset.json name sequence folders outside its own folder",
     )
     t.add_argument(
         "--out",
@@ -463,6 +468,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         nargs="+",
         required=True,
         help="dataset folders (dataset.json), dataset.json files or sequence folders",
+    )
+    e.add_argument(
+        "--allow-outside-manifest",
+        action="store_true",
+        help="let a dataset.json name sequence folders outside its own folder",
     )
     common(e)
     e.set_defaults(func=_cmd_evaluate)

@@ -9,7 +9,6 @@ phantom seed so that no phantom is seen in both training and validation; phantom
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 import torch
 
 from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.io.manifest import named_path, read_json_manifest
 from chisel.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -59,18 +59,17 @@ def _seed_of(d: dict[str, Any], source: str) -> int | None:
     return None
 
 
-def read_dataset_index(path: str | Path) -> list[SequenceRef]:
+def read_dataset_index(path: str | Path, allow_outside: bool = False) -> list[SequenceRef]:
     """Parse a ``dataset.json``: ``{"sequences": [{"path": ..., "phantom_seed": ...}, ...]}``.
 
-    Relative paths are relative to the index's folder. Also accepts a bare list of entries,
-    entries that are plain path strings, and ``seed`` for ``phantom_seed``.
+    Relative paths are relative to the index's folder, and every path must lie inside it
+    (links resolved) unless ``allow_outside`` (``--allow-outside-manifest``): the index is
+    a manifest like any other. Also accepts entries that are plain path strings and
+    ``seed`` for ``phantom_seed``.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InvalidInputError(path, f"cannot read dataset index: {exc}") from None
-    entries = doc.get("sequences") if isinstance(doc, dict) else doc
+    doc = read_json_manifest(path)
+    entries = doc.get("sequences")
     if not isinstance(entries, list) or not entries:
         raise InvalidInputError(path, "expected a non-empty 'sequences' list")
     refs = []
@@ -86,13 +85,16 @@ def read_dataset_index(path: str | Path) -> list[SequenceRef]:
             seed = _seed_of(entry, where)
         else:
             raise InvalidInputError(where, f"expected a path or an object, got {entry!r}")
-        seq_path = Path(rel) if Path(rel).is_absolute() else path.parent / rel
+        seq_path = named_path(
+            path, rel, f"sequences[{i}]", allow_outside=allow_outside, kind="folder"
+        )
         refs.append(SequenceRef(seq_path, seed))
     return refs
 
 
-def find_sequences(inputs: list[str | Path]) -> list[SequenceRef]:
-    """Resolve dataset folders, ``dataset.json`` files and sequence folders to sequences.
+def find_sequences(inputs: list[str | Path], allow_outside: bool = False) -> list[SequenceRef]:
+    """Resolve dataset folders, ``dataset.json`` files and sequence folders to sequences
+    (``allow_outside``: see :func:`read_dataset_index`).
 
     A sequence folder's phantom seed is read from its meta (``phantom_seed`` or ``seed``).
     """
@@ -102,9 +104,9 @@ def find_sequences(inputs: list[str | Path]) -> list[SequenceRef]:
     for item in inputs:
         p = Path(item)
         if p.is_file() and p.suffix == ".json":
-            refs += read_dataset_index(p)
+            refs += read_dataset_index(p, allow_outside)
         elif (p / DATASET_INDEX).is_file():
-            refs += read_dataset_index(p / DATASET_INDEX)
+            refs += read_dataset_index(p / DATASET_INDEX, allow_outside)
         elif (p / "sequence.json").is_file():
             refs.append(SequenceRef(p, _seed_of(Sequence(p).meta, str(p))))
         else:
