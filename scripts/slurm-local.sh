@@ -89,7 +89,8 @@ start() {
     $SUDO -u munge /usr/sbin/munged 2>/dev/null || $SUDO runuser -u munge -- /usr/sbin/munged
     touch "$STATE/started-munged"
   fi
-  $SUDO /usr/sbin/slurmctld -i          # -i: ignore state left by an earlier cluster
+  # -c: start clean (no jobs, nodes or reservations from an earlier cluster's saved state)
+  $SUDO /usr/sbin/slurmctld -c
   $SUDO /usr/sbin/slurmd
   for _ in $(seq 1 60); do
     if sinfo -h -o "%t" 2>/dev/null | grep -qE "^(idle|mix|alloc)"; then
@@ -103,15 +104,34 @@ start() {
   exit 1
 }
 
+# Stop one daemon by the pid in its pid file: SIGTERM, wait for the *process* (slurmd
+# removes its pid file at the start of a shutdown that can hang), SIGKILL after 20 s.
+stop_daemon() {
+  local pidfile=$1 pid
+  [ -f "$pidfile" ] || return 0
+  pid=$(cat "$pidfile")
+  kill -0 "$pid" 2>/dev/null || { $SUDO rm -f "$pidfile"; return 0; }
+  $SUDO kill "$pid" 2>/dev/null || true
+  for _ in $(seq 1 40); do kill -0 "$pid" 2>/dev/null || return 0; sleep 0.5; done
+  echo "slurm-local: pid $pid ($pidfile) did not stop on SIGTERM; SIGKILL" >&2
+  $SUDO kill -9 "$pid" 2>/dev/null || true
+  $SUDO rm -f "$pidfile"
+}
+
 stop() {
-  for d in slurmd slurmctld; do
-    if pid_alive "$STATE/$d.pid"; then
-      $SUDO kill "$(cat "$STATE/$d.pid")"
-      for _ in $(seq 1 30); do pid_alive "$STATE/$d.pid" || break; sleep 0.5; done
-    fi
-  done
+  # Jobs first, while the controller answers: a job step left running when the daemons go
+  # retries its completion message for ever and keeps slurmd from shutting down.
+  if scontrol ping >/dev/null 2>&1; then
+    scancel --partition="$PARTITION" 2>/dev/null || true
+    for _ in $(seq 1 30); do
+      [ -z "$(squeue -h -p "$PARTITION" -t RUNNING,COMPLETING,PENDING -o %i 2>/dev/null)" ] && break
+      sleep 1
+    done
+  fi
+  stop_daemon "$STATE/slurmd.pid"
+  stop_daemon "$STATE/slurmctld.pid"
   if [ -f "$STATE/started-munged" ]; then
-    [ -f /run/munge/munged.pid ] && $SUDO kill "$(cat /run/munge/munged.pid)" 2>/dev/null || true
+    stop_daemon /run/munge/munged.pid
     rm -f "$STATE/started-munged"
   fi
   echo "slurm-local: stopped"
