@@ -32,6 +32,7 @@ from sim.appearance import TextureVolume
 from sim.config import SimConfig
 from sim.effects import FrameEffects, apply_effects, blur_poses
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain
+from sim.materials import steel_dict, tissue_properties
 from sim.mitsuba_camera import (
     RenderGrid,
     mitsuba_to_world,
@@ -136,7 +137,7 @@ class MeshRenderer:
             mi.Vector3f(np.ascontiguousarray(dirs.reshape(-1, 3).T)) if self.jit else None
         )
 
-        props = self._tissue_properties(texture, cut, cut_texture)
+        props = tissue_properties(mi, cfg.appearance, texture, cut, cut_texture, self.depth_only)
         self.mesh = self._mi_mesh("tissue", mesh, props, with_normals=not self.depth_only)
         if cut is not None:
             self.mesh.add_attribute("face_cut", 1, self._buffer(cut.astype(np.float32)))
@@ -182,34 +183,6 @@ class MeshRenderer:
             )
             self._gain_used = mi.Float(self._gain.ravel()[self.field_stop.ravel()])
 
-    def _tissue_properties(
-        self,
-        texture: TextureVolume | None,
-        cut: np.ndarray | None,
-        cut_texture: TextureVolume | None,
-    ) -> Any:
-        """The tissue mesh's Mitsuba properties: the mucosa's principled BSDF, blended
-        per face with the cut tissue's where faces are labelled cut; none for depth."""
-        mi = self.mi
-        props = mi.Properties()
-        if self.depth_only:
-            return props
-        assert texture is not None
-        mucosa = self._principled_dict(texture)
-        if cut is None:
-            props["bsdf"] = mi.load_dict(mucosa)
-        else:
-            assert cut_texture is not None
-            props["bsdf"] = mi.load_dict(
-                {
-                    "type": "blendbsdf",
-                    "weight": {"type": "mesh_attribute", "name": "face_cut"},
-                    "bsdf_0": mucosa,
-                    "bsdf_1": self._principled_dict(cut_texture),
-                }
-            )
-        return props
-
     def _add_tools(self, tools: ToolSet, mesh: trimesh.Trimesh) -> None:
         """The instruments' Mitsuba meshes (brushed steel), their local geometry and the
         parking place of an unused one."""
@@ -218,21 +191,7 @@ class MeshRenderer:
         for k, tm in enumerate(tools.meshes):
             tprops = mi.Properties()
             if not self.depth_only:
-                # Brushed steel: a rough conductor plus a little diffuse scattering
-                # (Mitsuba's blendbsdf), so the metal is not black away from highlights.
-                tprops["bsdf"] = mi.load_dict(
-                    {
-                        "type": "blendbsdf",
-                        "weight": float(cfg.tools.diffuse),
-                        "bsdf_0": {
-                            "type": "roughconductor",
-                            "material": cfg.tools.material,
-                            "distribution": "ggx",
-                            "alpha": float(cfg.tools.roughness),
-                        },
-                        "bsdf_1": {"type": "diffuse", "reflectance": 0.55},
-                    }
-                )
+                tprops["bsdf"] = mi.load_dict(steel_dict(cfg.tools))
             self._tool_meshes.append(
                 self._mi_mesh(f"tool_{k}", tm, tprops, with_normals=not self.depth_only)
             )
@@ -270,25 +229,6 @@ class MeshRenderer:
                 "beam_width": float(lc.beam_width_deg),
             }
         return scene
-
-    def _principled_dict(self, texture: TextureVolume) -> dict:
-        """The tissue's principled BSDF over a baked colour volume (Mitsuba dict)."""
-        mi = self.mi
-        box = texture.box_mm
-        to_world = make_transform(np.diag(box[1] - box[0]), box[0])
-        return {
-            "type": "principled",
-            "base_color": {
-                "type": "volume",
-                "volume": {
-                    "type": "gridvolume",
-                    "grid": mi.VolumeGrid(np.ascontiguousarray(texture.rgb, dtype=np.float32)),
-                    "to_world": mi.ScalarTransform4f(to_world),
-                },
-            },
-            "roughness": float(self.cfg.appearance.roughness),
-            "specular": float(self.cfg.appearance.specular),
-        }
 
     def _mi_mesh(self, name: str, mesh: trimesh.Trimesh, props: Any, with_normals: bool) -> Any:
         mi = self.mi

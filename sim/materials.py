@@ -1,0 +1,79 @@
+"""The simulator's materials as Mitsuba dicts: wet mucosa and raw cut tissue (principled
+BSDFs over baked colour volumes, blended per face where a cut made the face) and the
+instruments' brushed steel. Pure functions of the configuration: the renderer loads them."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from chisel.core.geometry import make_transform
+from sim.appearance import TextureVolume
+from sim.config import AppearanceConfig, ToolsConfig
+
+
+def principled_dict(mi: Any, texture: TextureVolume, appearance: AppearanceConfig) -> dict:
+    """The tissue's principled BSDF over a baked colour volume (Mitsuba dict)."""
+    box = texture.box_mm
+    to_world = make_transform(np.diag(box[1] - box[0]), box[0])
+    return {
+        "type": "principled",
+        "base_color": {
+            "type": "volume",
+            "volume": {
+                "type": "gridvolume",
+                "grid": mi.VolumeGrid(np.ascontiguousarray(texture.rgb, dtype=np.float32)),
+                "to_world": mi.ScalarTransform4f(to_world),
+            },
+        },
+        "roughness": float(appearance.roughness),
+        "specular": float(appearance.specular),
+    }
+
+
+def tissue_properties(
+    mi: Any,
+    appearance: AppearanceConfig,
+    texture: TextureVolume | None,
+    cut: np.ndarray | None,
+    cut_texture: TextureVolume | None,
+    depth_only: bool,
+) -> Any:
+    """The tissue mesh's Mitsuba properties: the mucosa's principled BSDF, blended per face
+    with the cut tissue's where faces are labelled cut (mesh attribute ``face_cut``); none
+    for a depth-only renderer."""
+    props = mi.Properties()
+    if depth_only:
+        return props
+    assert texture is not None
+    mucosa = principled_dict(mi, texture, appearance)
+    if cut is None:
+        props["bsdf"] = mi.load_dict(mucosa)
+    else:
+        assert cut_texture is not None
+        props["bsdf"] = mi.load_dict(
+            {
+                "type": "blendbsdf",
+                "weight": {"type": "mesh_attribute", "name": "face_cut"},
+                "bsdf_0": mucosa,
+                "bsdf_1": principled_dict(mi, cut_texture, appearance),
+            }
+        )
+    return props
+
+
+def steel_dict(tools: ToolsConfig) -> dict:
+    """Brushed steel: a rough conductor plus a little diffuse scattering (Mitsuba's
+    blendbsdf), so the metal is not black away from highlights."""
+    return {
+        "type": "blendbsdf",
+        "weight": float(tools.diffuse),
+        "bsdf_0": {
+            "type": "roughconductor",
+            "material": tools.material,
+            "distribution": "ggx",
+            "alpha": float(tools.roughness),
+        },
+        "bsdf_1": {"type": "diffuse", "reflectance": 0.55},
+    }
