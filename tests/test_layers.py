@@ -21,11 +21,8 @@ MAX_FUNCTION_LINES = 120
 # Still over the size goals of the issue on the house: these lists only shrink, and a
 # module or function that gets under its goal must leave them (the test then says so).
 OVERSIZED_MODULES = {
-    "chisel/fusion.py",
-    "chisel/registration.py",
     "chisel/updater.py",
     "sim/config.py",
-    "phantoms/procedures.py",
 }
 LONG_FUNCTIONS = {
     "chisel/cli/cmd_depth.py:register",
@@ -91,7 +88,7 @@ ALLOWED: dict[str, set[str]] = {
     "chisel.io": {"chisel.core", "chisel.io"},
     "chisel.method": {"chisel.core", "chisel.io", "chisel.method", "chisel.depth"},
     "chisel.depth": {"chisel.core", "chisel.io", "chisel.depth"},
-    "chisel.eval": {"chisel.core", "chisel.io", "chisel.eval"},
+    "chisel.eval": {"chisel.core", "chisel.io", "chisel.method", "chisel.eval"},
     "chisel.cli": {
         "chisel.core",
         "chisel.io",
