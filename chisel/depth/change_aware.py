@@ -26,7 +26,7 @@ refused naming both kinds.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from chisel.core.atomic import atomic_path, atomic_write_text
+from chisel.core.config import config_from_dict
 from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.depth.checkpoint import (
     CHECKPOINT_FORMAT,
@@ -45,6 +46,7 @@ from chisel.depth.checkpoint import (
     nonfinite_tensors,
     sidecar_path,
 )
+from chisel.depth.network import conv_bn_relu
 
 KIND = KIND_CHANGE_AWARE
 """The ``kind`` recorded in change-aware checkpoints and TorchScript exports."""
@@ -108,28 +110,7 @@ class ChangeNetConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "config") -> ChangeNetConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise InvalidInputError(
-                source,
-                f"unknown ChangeNetConfig field(s) {sorted(unknown)}; known: {sorted(known)}",
-            )
-        try:
-            values: dict[str, Any] = {
-                k: tuple(v) if isinstance(v, list) else v for k, v in d.items()
-            }
-            return cls(**values)
-        except TypeError as exc:
-            raise InvalidInputError(source, f"bad ChangeNetConfig: {exc}") from None
-
-
-def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False),
-        nn.BatchNorm2d(c_out),
-        nn.ReLU(inplace=True),
-    )
+        return config_from_dict(cls, d, source)
 
 
 IN_CHANNELS = 5
@@ -148,12 +129,14 @@ class ChangeNet(nn.Module):
         super().__init__()
         self.config = config or ChangeNetConfig()
         w = self.config.widths
-        self.stem = nn.Sequential(_conv(IN_CHANNELS, w[0]), _conv(w[0], w[0]))
+        self.stem = nn.Sequential(conv_bn_relu(IN_CHANNELS, w[0]), conv_bn_relu(w[0], w[0]))
         self.down = nn.ModuleList(
-            [nn.Sequential(_conv(w[k], w[k + 1], stride=2), _conv(w[k + 1], w[k + 1]))
+            [nn.Sequential(conv_bn_relu(w[k], w[k + 1], stride=2), conv_bn_relu(w[k + 1], w[k + 1]))
              for k in range(len(w) - 1)]
         )  # fmt: skip
-        self.up = nn.ModuleList([_conv(w[k + 1] + w[k], w[k]) for k in range(len(w) - 2, -1, -1)])
+        self.up = nn.ModuleList(
+            [conv_bn_relu(w[k + 1] + w[k], w[k]) for k in range(len(w) - 2, -1, -1)]
+        )
         self.head = nn.Conv2d(w[0], 2, 3, 1, 1)
         nn.init.zeros_(self.head.weight)
         assert self.head.bias is not None  # Conv2d has a bias by default

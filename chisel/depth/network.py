@@ -13,13 +13,14 @@ renders, but the updater solves the scale of every estimate against its own rend
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from chisel.core.config import config_from_dict
 from chisel.core.errors import InvalidInputError
 
 LOG_DEPTH_CLAMP = 12.0
@@ -80,22 +81,10 @@ class DepthNetConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "config") -> DepthNetConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise InvalidInputError(
-                source, f"unknown DepthNetConfig field(s) {sorted(unknown)}; known: {sorted(known)}"
-            )
-        try:
-            values: dict[str, Any] = {
-                k: tuple(v) if isinstance(v, list) else v for k, v in d.items()
-            }
-            return cls(**values)
-        except TypeError as exc:
-            raise InvalidInputError(source, f"bad DepthNetConfig: {exc}") from None
+        return config_from_dict(cls, d, source)
 
 
-def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+def conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(
         nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False),
         nn.BatchNorm2d(c_out),
@@ -106,7 +95,7 @@ def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
 class _ResBlock(nn.Module):
     def __init__(self, c: int) -> None:
         super().__init__()
-        self.conv1 = _conv_bn_relu(c, c)
+        self.conv1 = conv_bn_relu(c, c)
         self.conv2 = nn.Conv2d(c, c, 3, 1, 1, bias=False)
         self.bn2 = nn.BatchNorm2d(c)
 
@@ -130,7 +119,7 @@ class DepthNet(nn.Module):
         stages = []
         c_in = 3
         for width, n_blocks in zip(w, self.config.blocks, strict=True):
-            layers: list[nn.Module] = [_conv_bn_relu(c_in, width, stride=2)]
+            layers: list[nn.Module] = [conv_bn_relu(c_in, width, stride=2)]
             layers += [_ResBlock(width) for _ in range(n_blocks)]
             stages.append(nn.Sequential(*layers))
             c_in = width
@@ -138,13 +127,13 @@ class DepthNet(nn.Module):
         # Decoder level k fuses the upsampled level k+1 with the encoder skip of level k.
         self.decoder = nn.ModuleList(
             [
-                nn.Sequential(_conv_bn_relu(w[k + 1] + w[k], w[k]), _conv_bn_relu(w[k], w[k]))
+                nn.Sequential(conv_bn_relu(w[k + 1] + w[k], w[k]), conv_bn_relu(w[k], w[k]))
                 for k in range(len(w) - 2, -1, -1)
             ]
         )
         top = max(4, w[0] // 2)
-        self.stem = _conv_bn_relu(3, top)
-        self.top = _conv_bn_relu(w[0] + top, top)
+        self.stem = conv_bn_relu(3, top)
+        self.top = conv_bn_relu(w[0] + top, top)
         self.head = nn.Conv2d(top, 1, 3, 1, 1)
         # Start near depth = e^2.5 ~ 12 mm, a typical endoscopic working distance.
         nn.init.zeros_(self.head.weight)
