@@ -29,7 +29,7 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -223,7 +223,7 @@ class TsdfModel:
     def save(self, path: str | Path) -> Path:
         """Write the model to ``path`` (.npz) atomically; returns ``path``."""
         path = Path(path)
-        arrays = {
+        arrays: dict[str, Any] = {  # Any: **arrays meets savez's keywords
             "format": np.array(MODEL_FORMAT),
             "version": np.array(MODEL_VERSION, dtype=np.int64),
             "tsdf": self.tsdf,
@@ -239,8 +239,7 @@ class TsdfModel:
             arrays["color"] = self.color
         with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
             # np.savez on a file handle: it would append ".npz" to a bare path name.
-            # allow_pickle: numpy's default, named so that **arrays cannot stand for it
-            np.savez_compressed(fh, allow_pickle=True, **arrays)
+            np.savez_compressed(fh, **arrays)
         return path
 
     @classmethod

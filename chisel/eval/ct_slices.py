@@ -31,7 +31,7 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy import ndimage
@@ -356,7 +356,7 @@ def write_ct_slices(path: str | Path, slices: Sequence[CtSlice]) -> Path:
     """
     if not slices:
         raise InvalidInputError(path, "no CT slice to write")
-    arrays: dict[str, np.ndarray] = {}
+    arrays: dict[str, Any] = {}  # Any: **arrays meets savez's keywords
     entries = []
     for i, s in enumerate(slices):
         names = list(s.images)
@@ -379,8 +379,7 @@ def write_ct_slices(path: str | Path, slices: Sequence[CtSlice]) -> Path:
     arrays["meta"] = np.array(json.dumps(meta))
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as fh:
-            # allow_pickle: numpy's default, named so that **arrays cannot stand for it
-            np.savez_compressed(fh, allow_pickle=True, **arrays)
+            np.savez_compressed(fh, **arrays)
     return Path(path)
 
 

@@ -9,6 +9,7 @@ import base64
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -125,7 +126,7 @@ def write_panels(path: str | Path, panels: Sequence[StepPanel]) -> Path:
     """
     if not panels:
         raise InvalidInputError(path, "no panel to write")
-    arrays: dict[str, np.ndarray] = {
+    arrays: dict[str, Any] = {  # Any: **arrays meets savez's keywords
         "format": np.array(PANELS_FORMAT),
         "version": np.array(PANELS_VERSION),
         "step": np.array([p.step for p in panels], dtype=np.int64),
@@ -148,8 +149,7 @@ def write_panels(path: str | Path, panels: Sequence[StepPanel]) -> Path:
         arrays[key] = depth_to_disk(stack) if key in PANEL_DEPTH_KEYS else stack
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as fh:
-            # allow_pickle: numpy's default, named so that **arrays cannot stand for it
-            np.savez_compressed(fh, allow_pickle=True, **arrays)
+            np.savez_compressed(fh, **arrays)
     return Path(path)
 
 
