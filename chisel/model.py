@@ -20,7 +20,7 @@ On disk a model is one ``.npz`` file (read with ``allow_pickle=False``)::
                         build from the preop sweep alone); absent in old files = "sweep"
     ct_sha256           str  content hash of the CT a "ct" build started from ("" = unknown)
 
-Files are written atomically (:func:`chisel.core.atomic.atomic_path`): a failed save never
+Files are written atomically (:func:`chisel.core.atomic.atomic_savez`): a failed save never
 leaves a half-written model behind.
 """
 
@@ -29,11 +29,11 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
-from chisel.core.atomic import atomic_path
+from chisel.core.atomic import atomic_savez
 from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.io.limits import check_npz_members
 
@@ -223,7 +223,7 @@ class TsdfModel:
     def save(self, path: str | Path) -> Path:
         """Write the model to ``path`` (.npz) atomically; returns ``path``."""
         path = Path(path)
-        arrays: dict[str, Any] = {  # Any: **arrays meets savez's keywords
+        arrays: dict[str, np.ndarray] = {
             "format": np.array(MODEL_FORMAT),
             "version": np.array(MODEL_VERSION, dtype=np.int64),
             "tsdf": self.tsdf,
@@ -237,10 +237,7 @@ class TsdfModel:
         }
         if self.color is not None:
             arrays["color"] = self.color
-        with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
-            # np.savez on a file handle: it would append ".npz" to a bare path name.
-            np.savez_compressed(fh, **arrays)
-        return path
+        return atomic_savez(path, arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> TsdfModel:

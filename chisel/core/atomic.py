@@ -15,9 +15,11 @@ import shutil
 import signal
 import tempfile
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
+
+import numpy as np
 
 from chisel.core.errors import InvalidInputError
 
@@ -126,6 +128,16 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+
+
+def atomic_savez(path: str | Path, arrays: Mapping[str, Any]) -> Path:
+    """Write ``arrays`` as a compressed ``.npz`` at ``path``, atomically; returns ``path``.
+
+    ``np.savez`` gets a file handle: given a bare temporary name it would append ".npz".
+    """
+    with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    return Path(path)
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

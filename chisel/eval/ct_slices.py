@@ -31,12 +31,12 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from scipy import ndimage
 
-from chisel.core.atomic import atomic_path
+from chisel.core.atomic import atomic_savez
 from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.eval.metrics import RoiBox
 from chisel.eval.panels import png_data_uri
@@ -356,7 +356,7 @@ def write_ct_slices(path: str | Path, slices: Sequence[CtSlice]) -> Path:
     """
     if not slices:
         raise InvalidInputError(path, "no CT slice to write")
-    arrays: dict[str, Any] = {}  # Any: **arrays meets savez's keywords
+    arrays: dict[str, np.ndarray] = {}
     entries = []
     for i, s in enumerate(slices):
         names = list(s.images)
@@ -377,10 +377,7 @@ def write_ct_slices(path: str | Path, slices: Sequence[CtSlice]) -> Path:
         )
     meta = {"format": CT_SLICES_FORMAT, "version": CT_SLICES_VERSION, "slices": entries}
     arrays["meta"] = np.array(json.dumps(meta))
-    with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-    return Path(path)
+    return atomic_savez(path, arrays)
 
 
 def read_ct_slices(path: str | Path) -> list[CtSlice]:

@@ -9,13 +9,12 @@ import base64
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 import trimesh
 
-from chisel.core.atomic import atomic_path
+from chisel.core.atomic import atomic_savez
 from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.core.geometry import Camera
 from chisel.core.raycast import MeshRaycaster
@@ -126,7 +125,7 @@ def write_panels(path: str | Path, panels: Sequence[StepPanel]) -> Path:
     """
     if not panels:
         raise InvalidInputError(path, "no panel to write")
-    arrays: dict[str, Any] = {  # Any: **arrays meets savez's keywords
+    arrays: dict[str, np.ndarray] = {
         "format": np.array(PANELS_FORMAT),
         "version": np.array(PANELS_VERSION),
         "step": np.array([p.step for p in panels], dtype=np.int64),
@@ -147,10 +146,7 @@ def write_panels(path: str | Path, panels: Sequence[StepPanel]) -> Path:
             )
         stack = np.stack([getattr(p, key) for p in panels])
         arrays[key] = depth_to_disk(stack) if key in PANEL_DEPTH_KEYS else stack
-    with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-    return Path(path)
+    return atomic_savez(path, arrays)
 
 
 def read_panels(path: str | Path) -> list[StepPanel]:
