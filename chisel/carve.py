@@ -15,7 +15,7 @@ import numpy as np
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, check_rigid, invert_rigid
-from chisel.fusion import TILE_PX, _camera_tiles, _flat, distort
+from chisel.fusion import TILE_PX, _camera_tiles, _flat, nearest_pixel
 from chisel.model import TsdfModel
 
 CARVE_NONE = 0
@@ -147,21 +147,8 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                     continue
                 xc = (R[0, 0] * i + R[0, 1] * j + R[0, 2] * k + t[0]) / zc
                 yc = (R[1, 0] * i + R[1, 1] * j + R[1, 2] * k + t[1]) / zc
-                r2 = xc * xc + yc * yc
-                if r2 > r2_max:
-                    continue
-                if distorted:
-                    xd, yd = distort(xc, yc, k1_, k2_, p1_, p2_, k3_)
-                else:
-                    xd = xc
-                    yd = yc
-                uf = fx * xd + cx + 0.5
-                vf = fy * yd + cy + 0.5
-                if uf < 0.0 or vf < 0.0:
-                    continue
-                u = int(uf)
-                v = int(vf)
-                if u >= W or v >= H or status[v, u] != CARVE_DELETED:
+                u, v = nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H)
+                if u < 0 or status[v, u] != CARVE_DELETED:
                     continue
                 for layer in range(n_layers):
                     za = z0[v, u, layer]

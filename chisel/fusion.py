@@ -47,6 +47,29 @@ numba kernels (fusion, carving, change): one home for the model, no call overhea
 
 
 @numba.njit(cache=True)
+def nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H):
+    # The raw (distorted) pixel whose area holds the normalised point (xc, yc), or
+    # (-1, -1) outside the image or beyond the lens model's valid radius (r2_max): the
+    # voxel-to-pixel step that fusion and carving share.
+    if xc * xc + yc * yc > r2_max:
+        return -1, -1
+    if distorted:
+        xd, yd = distort(xc, yc, dist[0], dist[1], dist[2], dist[3], dist[4])
+    else:
+        xd = xc
+        yd = yc
+    uf = fx * xd + cx + 0.5
+    vf = fy * yd + cy + 0.5
+    if uf < 0.0 or vf < 0.0:
+        return -1, -1
+    u = int(uf)
+    v = int(vf)
+    if u >= W or v >= H:
+        return -1, -1
+    return u, v
+
+
+@numba.njit(cache=True)
 def _clean_depth(depth):
     # No fastmath here: this is where NaN and inf are told apart from depths; <= 0 out.
     out = np.empty(depth.shape, dtype=np.float32)
@@ -279,21 +302,10 @@ def _integrate_kernel(
                             continue
                         if int(gx) != tx or int(gy) != ty:
                             continue
-                        r2 = xc * xc + yc * yc
-                        if r2 > r2_max:
-                            continue
-                        if distorted:
-                            xd, yd = distort(xc, yc, k1_, k2_, p1_, p2_, k3_)
-                        else:
-                            xd = xc
-                            yd = yc
-                        uf = fx * xd + cx + 0.5
-                        vf = fy * yd + cy + 0.5
-                        if uf < 0.0 or vf < 0.0:
-                            continue
-                        u = int(uf)
-                        v = int(vf)
-                        if u >= W or v >= H:
+                        u, v = nearest_pixel(
+                            xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H
+                        )
+                        if u < 0:
                             continue
                         w = pix_w[v, u] if use_weight else 1.0
                         if w <= 0.0:
