@@ -36,14 +36,15 @@ from torch import nn
 
 from chisel.core.atomic import atomic_path, atomic_write_text
 from chisel.core.config import config_from_dict
-from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.core.errors import InvalidInputError
 from chisel.depth.checkpoint import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
     KIND_CHANGE_AWARE,
     CheckpointError,
-    checkpoint_kind_error,
+    fill_weights,
     nonfinite_tensors,
+    read_checkpoint,
     sidecar_path,
 )
 from chisel.depth.network import conv_bn_relu
@@ -291,46 +292,8 @@ def load_change_checkpoint(path: str | Path) -> tuple[ChangeNet, dict[str, Any]]
     A monocular checkpoint (kind ``monocular``, or no kind: the older files) is refused
     with a :class:`CheckpointError` naming both kinds. Returns ``(net, info)``.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(path, "checkpoint file does not exist")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for a foreign/corrupt file
-        raise CheckpointError(
-            path,
-            f"cannot read as a depth checkpoint with weights_only=True ({type(exc).__name__})",
-        ) from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(path, f"not a depth checkpoint (expected {CHECKPOINT_FORMAT!r})")
-    if payload.get("version") != CHECKPOINT_VERSION:
-        raise FormatVersionError(
-            path,
-            f"depth checkpoint version {payload.get('version')!r}, expected {CHECKPOINT_VERSION}",
-        )
-    kind_error = checkpoint_kind_error(path, payload, KIND)
-    if kind_error is not None:
-        raise kind_error
+    payload = read_checkpoint(path, KIND)
     config = ChangeNetConfig.from_dict(payload.get("config", {}), f"{path} config")
     net = ChangeNet(config)
-    state = payload.get("state_dict")
-    if not isinstance(state, dict):
-        raise CheckpointError(path, "no state_dict in checkpoint")
-    expected = net.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    shapes = [
-        k for k in set(expected) & set(state) if tuple(expected[k].shape) != tuple(state[k].shape)
-    ]
-    if missing or unexpected or shapes:
-        raise CheckpointError(
-            path,
-            f"weights do not match the architecture {config.to_dict()}: missing {missing[:3]}, "
-            f"unexpected {unexpected[:3]}, mis-shaped {sorted(shapes)[:3]}",
-        )
-    bad = nonfinite_tensors(state)
-    if bad:
-        raise CheckpointError(path, f"{len(bad)} weight tensor(s) hold NaN/inf, e.g. {bad[:3]}")
-    net.load_state_dict(state, strict=True)
-    net.eval()
+    fill_weights(path, net, payload, config.to_dict())
     return net, dict(payload.get("info", {}))

@@ -125,15 +125,10 @@ def _describe_mismatch(
     return problems
 
 
-def load_checkpoint(
-    path: str | Path, config: DepthNetConfig | None = None
-) -> tuple[DepthNet, dict[str, Any]]:
-    """Load a checkpoint into a fresh :class:`DepthNet` (eval mode, CPU).
-
-    config : build this architecture instead of the stored one (e.g. to check that a
-    checkpoint fits an expected network); a mismatch raises :class:`CheckpointError`.
-    Returns ``(net, info)``.
-    """
+def read_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
+    """The payload of a depth checkpoint of ``kind``, read with ``weights_only=True``:
+    the file exists, is a checkpoint of this format and version, and of the kind asked for
+    (the other kind is refused naming both). Shared by both networks' loaders."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(path, "checkpoint file does not exist")
@@ -155,11 +150,17 @@ def load_checkpoint(
             f"depth checkpoint version {payload.get('version')!r}; this reader reads "
             f"version {CHECKPOINT_VERSION}",
         )
-    kind_error = checkpoint_kind_error(path, payload, KIND_MONOCULAR)
+    kind_error = checkpoint_kind_error(path, payload, kind)
     if kind_error is not None:
         raise kind_error
-    stored = DepthNetConfig.from_dict(payload.get("config", {}), f"{path} config")
-    net = DepthNet(config or stored)
+    return payload
+
+
+def fill_weights(
+    path: str | Path, net: torch.nn.Module, payload: dict[str, Any], architecture: object
+) -> None:
+    """Load the payload's weights into ``net`` (then eval mode), refusing weights that do
+    not fit the ``architecture`` (shown in the message) or hold NaN/inf."""
     state = payload.get("state_dict")
     if not isinstance(state, dict):
         raise CheckpointError(path, "no state_dict in checkpoint")
@@ -167,8 +168,7 @@ def load_checkpoint(
     if problems:
         raise CheckpointError(
             path,
-            "weights do not match the architecture "
-            f"{(config or stored).to_dict()}: " + "; ".join(problems),
+            f"weights do not match the architecture {architecture}: " + "; ".join(problems),
         )
     bad = nonfinite_tensors(state)
     if bad:
@@ -180,4 +180,19 @@ def load_checkpoint(
         )
     net.load_state_dict(state, strict=True)
     net.eval()
+
+
+def load_checkpoint(
+    path: str | Path, config: DepthNetConfig | None = None
+) -> tuple[DepthNet, dict[str, Any]]:
+    """Load a checkpoint into a fresh :class:`DepthNet` (eval mode, CPU).
+
+    config : build this architecture instead of the stored one (e.g. to check that a
+    checkpoint fits an expected network); a mismatch raises :class:`CheckpointError`.
+    Returns ``(net, info)``.
+    """
+    payload = read_checkpoint(path, KIND_MONOCULAR)
+    stored = DepthNetConfig.from_dict(payload.get("config", {}), f"{path} config")
+    net = DepthNet(config or stored)
+    fill_weights(path, net, payload, (config or stored).to_dict())
     return net, dict(payload.get("info", {}))
