@@ -67,7 +67,9 @@ def _median_scaled(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
 def _stream_update(ref, seq: Sequence, change) -> None:  # noqa: ANN001
     """frames/s of ChiselUpdater.process (render M_t, the network, change mask, fusion) on a
     model built from the previous step's mesh at the preop sweep's poses (voxel 0.5 mm)."""
-    from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, build_preop_model
+    from chisel.build import BuildConfig, build_preop_model
+    from chisel.update_config import UpdateConfig
+    from chisel.updater import ChiselUpdater
 
     preop = Sequence(ref.path.parent / "preop")
     mesh = phantom_step_mesh(ref.phantom_dir, ref.step - 1)

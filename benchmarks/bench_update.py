@@ -43,13 +43,16 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from chisel.batch import update_step
+from chisel.build import BuildConfig, preop_bounds
 from chisel.core.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth
 from chisel.fusion import integrate
 from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
-from chisel.updater import BuildConfig, ChiselUpdater, UpdateConfig, preop_bounds, update_step
+from chisel.update_config import UpdateConfig
+from chisel.updater import ChiselUpdater
 
 
 def _pose_error(shift_mm: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:

@@ -55,10 +55,10 @@ _EXPORTS: dict[str, str] = {
     "TsdfModel": "chisel.model",
     "ChangeConfig": "chisel.change",
     "RegistrationConfig": "chisel.registration",
-    "BuildConfig": "chisel.updater",
-    "UpdateConfig": "chisel.updater",
-    "build_preop_model": "chisel.updater",
-    "update_step": "chisel.updater",
+    "BuildConfig": "chisel.build",
+    "UpdateConfig": "chisel.update_config",
+    "build_preop_model": "chisel.build",
+    "update_step": "chisel.batch",
     "ChiselUpdater": "chisel.updater",
     "extract_mesh": "chisel.mesh",
 }
@@ -83,6 +83,8 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
+    from chisel.batch import update_step
+    from chisel.build import BuildConfig, build_preop_model
     from chisel.change import ChangeConfig
     from chisel.core.errors import ChiselError
     from chisel.core.geometry import Camera, look_at
@@ -91,13 +93,8 @@ if TYPE_CHECKING:
     from chisel.mesh import extract_mesh
     from chisel.model import TsdfModel
     from chisel.registration import RegistrationConfig
-    from chisel.updater import (
-        BuildConfig,
-        ChiselUpdater,
-        UpdateConfig,
-        build_preop_model,
-        update_step,
-    )
+    from chisel.update_config import UpdateConfig
+    from chisel.updater import ChiselUpdater
 
 
 def __getattr__(name: str) -> Any:

@@ -306,3 +306,14 @@ def robust_mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
     out[:3, :3] = Rotation.from_rotvec(np.median(rv, axis=0)).as_matrix()
     out[:3, 3] = np.median(Ts[:, :3, 3], axis=0)
     return out
+
+
+def tracking_excess(F: np.ndarray, cfg: RegistrationConfig) -> str:
+    """Why the camera-side correction F is one the tracker cannot need ("" if it can)."""
+    shift_mm, angle_deg = float(np.linalg.norm(F[:3, 3])), rotation_angle_deg(F[:3, :3])
+    if shift_mm <= cfg.tracking_accuracy_mm and angle_deg <= cfg.tracking_accuracy_deg:
+        return ""
+    return (
+        f"correction {shift_mm:.2f} mm / {angle_deg:.2f} deg exceeds the tracking accuracy "
+        f"({cfg.tracking_accuracy_mm} mm / {cfg.tracking_accuracy_deg} deg)"
+    )

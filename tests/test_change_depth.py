@@ -10,6 +10,8 @@ import pytest
 import torch
 import trimesh
 
+from chisel.batch import update_step
+from chisel.build import BuildConfig, build_preop_model
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera
 from chisel.core.raycast import MeshRaycaster
@@ -36,14 +38,9 @@ from chisel.depth.checkpoint import CheckpointError, load_checkpoint
 from chisel.depth.prior_data import StepSequenceRef, build_prior_set
 from chisel.depth_source import estimate_depth, wants_prior
 from chisel.io.sequence import Frame, SequenceWriter
-from chisel.updater import (
-    BuildConfig,
-    ChiselUpdater,
-    ModelRenderer,
-    UpdateConfig,
-    build_preop_model,
-    update_step,
-)
+from chisel.render import ModelRenderer
+from chisel.update_config import UpdateConfig
+from chisel.updater import ChiselUpdater
 
 H, W = 32, 40
 TINY = ChangeNetConfig(widths=(8, 12), input_scale=1.0)

@@ -190,7 +190,7 @@ def test_update_flags_are_generated_from_the_config_fields() -> None:
 
     from chisel.cli import build_parser
     from chisel.core.config import config_from_args, leaf_fields
-    from chisel.updater import UpdateConfig
+    from chisel.update_config import UpdateConfig
 
     parser = build_parser(["update"])
     args = parser.parse_args(

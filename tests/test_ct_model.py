@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from chisel.build import BuildConfig, build_preop_model
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, look_at, transform_points
 from chisel.ct_model import ct_from_mesh, ct_from_volume
 from chisel.model import TsdfModel
-from chisel.updater import BuildConfig, build_preop_model
 
 VOXEL_MM = 0.5
 TRUNC_MM = 2.0

@@ -13,13 +13,15 @@ import numpy as np
 import pytest
 import trimesh
 
+from chisel.batch import update_step
+from chisel.build import BuildConfig, build_preop_model
 from chisel.core.geometry import Camera, look_at, transform_points
 from chisel.core.raycast import MeshRaycaster
 from chisel.ct_model import ct_from_mesh
 from chisel.depth_source import CallableDepth, GroundTruthDepth
 from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
-from chisel.updater import BuildConfig, UpdateConfig, build_preop_model, update_step
+from chisel.update_config import UpdateConfig
 
 VOXEL_MM = 0.5
 WINDOW_MM = 3.0

@@ -21,7 +21,6 @@ MAX_FUNCTION_LINES = 120
 # Still over the size goals of the issue on the house: these lists only shrink, and a
 # module or function that gets under its goal must leave them (the test then says so).
 OVERSIZED_MODULES = {
-    "chisel/updater.py",
     "sim/config.py",
 }
 LONG_FUNCTIONS = {

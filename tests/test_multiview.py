@@ -13,13 +13,16 @@ from test_updater_scenes import (
     tissue_mesh,
 )
 
+from chisel.batch import update_step
+from chisel.build import BuildConfig, build_preop_model
 from chisel.change import ChangeConfig, frame_threshold, multiview_support
 from chisel.core.errors import InvalidInputError
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth, SequenceDepth
+from chisel.detect import Detection, confirm_changes
 from chisel.io.sequence import Frame, write_sequence
 from chisel.mesh import extract_mesh
-from chisel.updater import BuildConfig, UpdateConfig, build_preop_model, update_step
+from chisel.update_config import UpdateConfig
 
 SINGLE = ChangeConfig(min_views=0, noise_k=0.0)
 """The paper's per-frame detector: fixed threshold, every frame trusted alone."""
@@ -71,6 +74,46 @@ def test_support_counts_on_a_plane(scene: dict) -> None:
         multiview_support(masks, renders[:4], estimates, cam, P, used, 1.0, 1.0)
     with pytest.raises(InvalidInputError, match="T_world_from_cams"):
         multiview_support(masks, renders, estimates, cam, P[:4], used, 1.0, 1.0)
+
+
+def test_confirmation_is_a_pure_function_of_the_detections(scene: dict) -> None:
+    # Frame 0 alone claims a 3 mm change on unchanged tissue: the others see the point
+    # unchanged, so the change goes; its detection is returned anew, the input untouched.
+    cam = scene["cam"]
+    P = poses(6, seed=3, spread_mm=1.0)
+    rc = MeshRaycaster.from_trimesh(scene["tissue"])
+    renders = [rc.render_depth(cam, T) for T in P]
+    blob = _blob(cam.shape, (48, 40), 8) & np.isfinite(renders[0])
+
+    def det(i: int, deeper: np.ndarray) -> Detection:
+        raw = np.where(deeper, renders[i] + 3.0, renders[i]).astype(np.float32)
+        return Detection(
+            index=i, used=True, threshold_mm=1.0, T_world_from_cam=P[i], mask=deeper.copy(),
+            m_prime=raw, m_t=renders[i], m_raw=raw,
+        )  # fmt: skip
+    none = np.zeros(cam.shape, bool)
+    dets = [det(0, blob)] + [det(i, none) for i in range(1, 6)]
+    out = confirm_changes(dets, cam, ChangeConfig(min_views=3, min_agreement=0.8))
+    assert not out[0].mask.any() and out[0].unconfirmed_px == blob.sum() > 100
+    assert np.array_equal(dets[0].mask, blob) and dets[0].unconfirmed_px == 0
+    with pytest.raises(AttributeError):
+        out[0].mask = blob  # type: ignore[misc]
+    # The same change seen by every frame (each frame's render pushed 3 mm deeper where
+    # it sees the blob's points) is kept by all: removal is removal in every view.
+    pts = cam.backproject(renders[0])[blob]
+    world = (P[0][:3, :3] @ pts.T).T + P[0][:3, 3]
+    seen = []
+    for i in range(6):
+        Tcw = np.linalg.inv(P[i])
+        pc = (Tcw[:3, :3] @ world.T).T + Tcw[:3, 3]
+        uv, z = cam.project(pc)
+        u, v = uv[:, 0], uv[:, 1]
+        m = np.zeros(cam.shape, bool)
+        ok = (z > 0) & (u >= 0) & (v >= 0) & (u < cam.width - 1) & (v < cam.height - 1)
+        m[np.round(v[ok]).astype(int), np.round(u[ok]).astype(int)] = True
+        seen.append(m & np.isfinite(renders[i]))
+    kept = confirm_changes([det(i, seen[i]) for i in range(6)], cam, ChangeConfig(min_views=3))
+    assert kept[0].mask[blob].mean() > 0.8
 
 
 def test_frame_threshold_follows_the_noise() -> None:

@@ -455,9 +455,9 @@ def test_ct_mesh_that_is_not_closed(tmp_path) -> None:
     """An open CT surface (cropped segmentation) is accepted: the preoperative model is
     fused from depth rendered off the surface, which needs no closed mesh. Only what the
     mesh has is modelled; looking through a hole sees nothing there."""
+    from chisel.build import BuildConfig, build_preop_model
     from chisel.core.geometry import look_at
     from chisel.io.ct import load_ct_surface
-    from chisel.updater import BuildConfig, build_preop_model
 
     sphere = trimesh.creation.icosphere(3, radius=20.0)
     keep = sphere.triangles_center[:, 2] < 8.0  # cut a cap off: an open bowl

@@ -19,11 +19,11 @@ import pytest
 import trimesh
 from test_import_scene import SPHERE_CENTRE_MM, make_poses
 
+from chisel.build import BuildConfig, build_preop_model
 from chisel.core.geometry import Camera
 from chisel.core.raycast import MeshRaycaster
 from chisel.io.sequence import Frame, write_sequence
 from chisel.model import TsdfModel
-from chisel.updater import BuildConfig, build_preop_model
 
 REPO = Path(__file__).resolve().parents[1]
 

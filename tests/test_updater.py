@@ -17,6 +17,8 @@ from test_updater_scenes import (
     tissue_mesh,
 )
 
+from chisel.batch import update_step
+from chisel.build import BuildConfig, build_preop_model
 from chisel.change import ChangeConfig
 from chisel.core.errors import (
     CameraError,
@@ -33,14 +35,9 @@ from chisel.io.sequence import Frame
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
 from chisel.registration import RegistrationConfig
-from chisel.updater import (
-    BuildConfig,
-    ChiselUpdater,
-    ModelRenderer,
-    UpdateConfig,
-    build_preop_model,
-    update_step,
-)
+from chisel.render import ModelRenderer
+from chisel.update_config import UpdateConfig
+from chisel.updater import ChiselUpdater
 
 VOXEL = 0.5
 
@@ -124,7 +121,7 @@ def test_registration_recovers_pose_error_and_scale(scene: dict) -> None:
 
 
 def test_global_search_only_when_the_tracker_is_far_off(scene: dict, monkeypatch) -> None:
-    import chisel.updater as updater_mod
+    import chisel.batch as batch_mod
 
     cam, model = scene["cam"], scene["model"]
     P = poses(8, seed=2)
@@ -133,7 +130,7 @@ def test_global_search_only_when_the_tracker_is_far_off(scene: dict, monkeypatch
     _, report = update_step(model, cam, frames(scene["bitten"], cam, P, near), src)
     assert report.sequence_registration["method"] == "tracker"
     # Pretend ICP from the tracker failed: the step is registered globally instead.
-    monkeypatch.setattr(updater_mod, "MIN_TRACKER_FITNESS", 1.01)
+    monkeypatch.setattr(batch_mod, "MIN_TRACKER_FITNESS", 1.01)
     _, report = update_step(model, cam, frames(scene["bitten"], cam, P, near), src)
     assert report.sequence_registration["method"] != "tracker"
     assert report.sequence_registration["hand_eye"]["ok"]

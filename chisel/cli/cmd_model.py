@@ -183,7 +183,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "override it, and what neither sets keeps its default",
     )
     from chisel.core.config import add_config_arguments
-    from chisel.updater import UpdateConfig
+    from chisel.update_config import UpdateConfig
 
     group = p.add_argument_group(
         "update parameters (generated from UpdateConfig, ChangeConfig and RegistrationConfig)"
@@ -316,9 +316,9 @@ def _ct_fingerprint(path: Path) -> str:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
+    from chisel.build import BuildConfig, build_preop_model
     from chisel.io.ct import load_ct_surface
     from chisel.io.sequence import Sequence
-    from chisel.updater import BuildConfig, build_preop_model
 
     cfg = BuildConfig(
         voxel_size_mm=args.voxel_size_mm,
@@ -372,11 +372,12 @@ class _NoisyDepth:
 
 
 def _cmd_update(args: argparse.Namespace) -> int:
+    from chisel.batch import update_step
     from chisel.core.config import config_from_args, load_config_file
     from chisel.depth_source import depth_source_from_spec
     from chisel.io.sequence import Sequence
     from chisel.model import TsdfModel
-    from chisel.updater import UpdateConfig, update_step
+    from chisel.update_config import UpdateConfig
 
     if args.max_frames is not None and args.max_frames < 1:
         raise InvalidInputError("--max-frames", f"must be >= 1, got {args.max_frames}")
@@ -460,7 +461,7 @@ def _cmd_render_depth(args: argparse.Namespace) -> int:
     from chisel.io.ct import load_ct_surface
     from chisel.io.sequence import Frame, Sequence, SequenceWriter
     from chisel.model import TsdfModel
-    from chisel.updater import ModelRenderer
+    from chisel.render import ModelRenderer
 
     seq = Sequence(args.sequence)
     if args.model is not None:

@@ -1,0 +1,283 @@
+"""One surgical step at once (a recorded sequence): the step plan, then the shared
+per-frame detection, the multi-view confirmation of the whole step, and the fusion.
+
+The plan (:func:`plan_step`) is what the whole step knows before any frame is detected:
+M_t at every tracked pose, every frame's validated estimate and scale, and the
+camera-side hand-eye correction F registered from the whole sequence (or the reason it
+was not applied).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
+from typing import cast
+
+import numpy as np
+
+from chisel.change import solve_scale
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.geometry import Camera, invert_rigid
+from chisel.depth_source import estimate_depth, is_metric, wants_prior
+from chisel.detect import (
+    FrameInput,
+    HandEye,
+    confirm_changes,
+    detect,
+    sample_points,
+    scale_free,
+    validate_estimate,
+)
+from chisel.fusion import check_pose_in_model
+from chisel.icp import icp_similarity
+from chisel.io.sequence import Frame
+from chisel.model import TsdfModel
+from chisel.registration import (
+    check_result,
+    register_global,
+    robust_mean_transform,
+    tracking_excess,
+)
+from chisel.render import ModelRenderer
+from chisel.reports import StepReport
+from chisel.update_config import UpdateConfig
+from chisel.updater import finish_step, fuse
+
+log = logging.getLogger(__name__)
+
+MIN_TRACKER_FITNESS = 0.5
+"""Below this median ICP fitness from the tracked poses, search globally."""
+
+
+@dataclass(frozen=True)
+class StepPlan:
+    """What the whole step knows before any frame is detected."""
+
+    inputs: list[FrameInput]
+    """Per frame: checked pose, validated estimate, M_t (when rendered) and scale."""
+    renderer: ModelRenderer
+    """M_t's surface: renders and the registration target."""
+    hand_eye: np.ndarray | None
+    """(4, 4) camera-side correction F for every frame; None = estimated frame by frame
+    (registration off, or no frame registered from the tracked poses)."""
+    sequence_registration: dict | None
+    """How F was found (or why not), for the step's report."""
+    cfg: UpdateConfig
+    """The step's configuration: ``register`` is off when F was rejected."""
+
+
+def plan_step(
+    model: TsdfModel,
+    camera: Camera,
+    frames: list[Frame],
+    depth_source: Callable[[Frame], np.ndarray],
+    cfg: UpdateConfig,
+) -> StepPlan:
+    """The batch prelude: validate every frame, render M_t, estimate depth, register F.
+
+    Every frame is validated (poses rigid and inside the model's volume, depth
+    plausible) here, before anything is fused, so bad input raises without a
+    half-updated result.
+    """
+    metric = is_metric(depth_source)
+    poses = [
+        check_pose_in_model(model, f.T_world_from_cam, f"frame {f.index} pose") for f in frames
+    ]
+    renderer = ModelRenderer(model)
+    renders: list[np.ndarray | None] = [None] * len(frames)
+    if cfg.register or wants_prior(depth_source):
+        # M_t at every tracked pose: registration's reference, and the prior handed to a
+        # depth source that wants one (the change-aware network).
+        renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
+    estimates = [
+        validate_estimate(estimate_depth(depth_source, f, R), f, camera, metric)
+        for f, R in zip(frames, renders, strict=True)
+    ]
+    scales: list[float | None] = [None] * len(frames)
+    F, seq_reg, step_cfg = None, None, cfg
+    if cfg.register:
+        # Every render exists when registering (rendered above for the step).
+        scales, F, seq_reg, step_cfg = _register_step(
+            renderer, camera, poses, estimates, cast(list[np.ndarray], renders), cfg,
+            scale_free(cfg, depth_source),
+        )  # fmt: skip
+    inputs = [
+        FrameInput(f, T, E, R, s)
+        for f, T, E, R, s in zip(frames, poses, estimates, renders, scales, strict=True)
+    ]
+    return StepPlan(inputs, renderer, F, seq_reg, step_cfg)
+
+
+def _register_step(
+    renderer: ModelRenderer,
+    camera: Camera,
+    poses: list[np.ndarray],
+    estimates: list[np.ndarray],
+    renders: list[np.ndarray],
+    cfg: UpdateConfig,
+    solve_for_scale: bool,
+) -> tuple[list[float | None], np.ndarray | None, dict, UpdateConfig]:
+    """Per-frame scales, the step's hand-eye correction F (None = rejected), how it was
+    found, and the step's configuration (registration off when F was rejected)."""
+    if solve_for_scale:
+        # Solved once per frame; every stage below starts from the same scales.
+        scales = [_try_scale(R, E, cfg) for R, E in zip(renders, estimates, strict=True)]
+    else:
+        scales = [1.0] * len(poses)
+    # The tracker first: ICP from the tracked poses. A global search (FPFH + RANSAC over
+    # the whole step) only when that fails: on a monocular estimate, whose shape is not
+    # quite the model's, it can lock onto a fit rotated by several degrees, which then
+    # carves unchanged tissue (6-12 deg on the default experiment's network depth).
+    args = (renderer, camera, poses, estimates, scales)
+    F, he = _hand_eye(*args, np.eye(4), cfg, solve_for_scale)
+    seq_reg = {"ok": True, "method": "tracker", "reason": "ICP from the tracked poses"}
+    if cfg.sequence_ransac and (F is None or he["fitness_median"] < MIN_TRACKER_FITNESS):
+        log.info("ICP from the tracked poses did not register (%s): global search", he)
+        C, seq_reg = _sequence_registration(*args, cfg)
+        F, he = _hand_eye(*args, C, cfg, solve_for_scale)
+    seq_reg = {**seq_reg, "hand_eye": he}
+    excess = None if F is None else tracking_excess(F, cfg.registration)
+    if excess:
+        # A monocular estimate whose shape differs from the model's pulls ICP to a
+        # "correction" the tracker cannot need (6-12 deg on the default experiment's
+        # network depth, true hand-eye error 0.5 deg); placed that way, the estimate
+        # carves unchanged tissue. Trust the tracker for this step instead.
+        reason = f"hand-eye {excess}: the step is placed with the tracked poses, scale only"
+        log.warning("%s", reason)
+        return scales, None, {**seq_reg, "rejected": reason}, replace(cfg, register=False)
+    return scales, F, seq_reg, cfg
+
+
+def update_step(
+    model: TsdfModel,
+    camera: Camera,
+    frames: Iterable[Frame],
+    depth_source: Callable[[Frame], np.ndarray],
+    cfg: UpdateConfig = UpdateConfig(),  # noqa: B008 - frozen dataclass
+    progress: Callable[[Iterable], Iterable] | None = None,
+    keep_maps: bool = False,
+) -> tuple[TsdfModel, StepReport]:
+    """Apply one surgical step (one sequence) to ``model``; returns (new model, report).
+
+    ``model`` is not modified. Raises :class:`EmptyResultError` when no frame of the step
+    could be used (unless ``cfg.allow_unused_step``); keep_maps : each frame's report
+    keeps its carved change mask.
+    """
+    frames = list(frames)
+    if not frames:
+        raise InvalidInputError("frames", "a step needs at least one frame")
+    plan = plan_step(model, camera, frames, depth_source, cfg)
+    step_cfg, solve_for_scale = plan.cfg, scale_free(plan.cfg, depth_source)
+    hand_eye = HandEye()
+    if plan.hand_eye is not None:
+        hand_eye.F, hand_eye.fixed = plan.hand_eye, True
+    dets = []
+    for inp in progress(plan.inputs) if progress is not None else plan.inputs:
+        det = detect(
+            inp, camera, plan.renderer, hand_eye.current(), hand_eye.prior, step_cfg,
+            solve_for_scale,
+        )  # fmt: skip
+        hand_eye.learn(det)
+        dets.append(det)
+    if cfg.change.min_views > 0:
+        dets = confirm_changes(dets, camera, cfg.change)
+    new = model.copy()
+    reset = np.zeros(new.shape, dtype=np.uint8)
+    reports = [
+        fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps)
+        for f, d in zip(frames, dets, strict=True)
+    ]
+    return finish_step(new, reports, plan.sequence_registration, step_cfg)
+
+
+def _try_scale(render_mm: np.ndarray, estimate: np.ndarray, cfg: UpdateConfig) -> float | None:
+    """The estimate's scale against the render, or None when too few pixels overlap."""
+    try:
+        return solve_scale(render_mm, estimate, cfg.change.threshold_mm)[0]
+    except EmptyResultError:
+        return None
+
+
+def _hand_eye(
+    renderer: ModelRenderer,
+    camera: Camera,
+    poses: list[np.ndarray],
+    estimates: list[np.ndarray],
+    scales: list[float | None],
+    C_seq: np.ndarray,
+    cfg: UpdateConfig,
+    solve_for_scale: bool,
+) -> tuple[np.ndarray | None, dict]:
+    """Camera-side correction F: robust mean of per-frame ICP corrections from ``C_seq``.
+
+    A world-side correction cannot represent a constant hand-eye error for frames with
+    different orientations; F can. Up to ``cfg.hand_eye_frames`` frames, evenly spaced
+    over those with a scale, are registered without a prior (coarser point sampling),
+    and the median of their camera-side corrections is F.
+    """
+    rcfg = cfg.registration
+    usable = [i for i, s in enumerate(scales) if s is not None]
+    if len(usable) > cfg.hand_eye_frames:
+        pick = np.linspace(0, len(usable) - 1, cfg.hand_eye_frames).round().astype(int)
+        usable = [usable[i] for i in pick]
+    Fs, fits = [], []
+    for i in usable:
+        T, E, s0 = poses[i], estimates[i], float(cast(float, scales[i]))
+        src = sample_points(camera, s0 * E, T, cfg.sequence_points)
+        if len(src) < 10:
+            continue
+        sim = icp_similarity(
+            src, T[:3, 3], renderer.index, C_seq, rcfg, estimate_scale=solve_for_scale
+        )
+        res = check_result(
+            sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg, sim.scale
+        )
+        fits.append(sim.fitness if res.ok else 0.0)
+        if res.ok:
+            Fs.append(invert_rigid(T) @ res.T_model_from_est @ T)
+    fitness = float(np.median(fits)) if fits else 0.0
+    if not Fs:
+        return None, {
+            "ok": False, "frames": 0, "fitness_median": fitness,
+            "reason": "no frame registered in the first pass",
+        }  # fmt: skip
+    F = robust_mean_transform(Fs)
+    return F, {
+        "ok": True, "frames": len(Fs), "fitness_median": fitness,
+        "T_cam_from_corrected_cam": F.tolist(),
+    }  # fmt: skip
+
+
+def _sequence_registration(
+    renderer: ModelRenderer,
+    camera: Camera,
+    poses: list[np.ndarray],
+    estimates: list[np.ndarray],
+    scales: list[float | None],
+    cfg: UpdateConfig,
+) -> tuple[np.ndarray, dict]:
+    """RANSAC + ICP of the whole step's scaled estimates onto the model surface.
+
+    scales : per frame, the estimate's scale (None = no overlap with the render: skipped).
+    """
+    pts = [
+        sample_points(camera, s * E, T, cfg.sequence_points)
+        for T, E, s in zip(poses, estimates, scales, strict=True)
+        if s is not None
+    ]
+    src = np.concatenate(pts) if pts else np.empty((0, 3))
+    if len(src) == 0:  # no frame, or every pixel masked out (tools, blood, a bad mask file)
+        return np.eye(4), {"ok": False, "reason": "no valid pixel overlaps the model render"}
+    lo, hi = src.min(axis=0) - 5.0, src.max(axis=0) + 5.0
+    tv, tn = renderer.surface_points(lo, hi)
+    if len(tv) < 10:
+        return np.eye(4), {"ok": False, "reason": "no model surface near the estimate"}
+    res = register_global(src, tv, tn, cfg.registration)
+    out = res.to_dict()
+    if not res.ok:
+        log.warning(
+            "sequence-level registration failed (%s); per-frame ICP from the tracker", res.reason
+        )
+        return np.eye(4), out
+    return res.T_model_from_est, out

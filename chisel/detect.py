@@ -1,0 +1,301 @@
+"""Change detection of one frame, and the multi-view confirmation of a step's detections.
+
+:func:`detect` registers a frame's depth estimate to the model surface and measures its
+change mask against M_t; it touches no model and returns a frozen :class:`Detection`.
+:func:`confirm_changes` is a pure function over a step's detections. The streaming
+updater and the batch step (:mod:`chisel.updater`, :mod:`chisel.batch`) share both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import cast
+
+import numpy as np
+
+from chisel.change import (
+    ChangeConfig,
+    change_mask,
+    clean_mask,
+    frame_threshold,
+    impute,
+    multiview_support,
+    solve_scale,
+    warp_depth,
+)
+from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.geometry import Camera, invert_rigid, transform_points
+from chisel.depth_source import is_metric
+from chisel.icp import icp_similarity
+from chisel.io.sequence import Frame, check_depth_mm
+from chisel.registration import (
+    RegistrationResult,
+    check_result,
+    register_global,
+    robust_mean_transform,
+    tracking_excess,
+)
+from chisel.render import ModelRenderer
+from chisel.update_config import UpdateConfig
+
+
+@dataclass(frozen=True)
+class FrameInput:
+    """What detection needs of one frame: its checked tracked pose, the depth source's
+    validated estimate, and what is already known of M_t and the scale."""
+
+    frame: Frame
+    T_world_from_cam: np.ndarray
+    """(4, 4) tracked pose, checked rigid and inside the model."""
+    estimate: np.ndarray
+    """(H, W) float32 depth up to scale, NaN = invalid (:func:`validate_estimate`)."""
+    render_mm: np.ndarray | None = None
+    """(H, W) float32 M_t at the tracked pose, mm; None = rendered at detection."""
+    scale0: float | None = None
+    """The estimate's scale against M_t if already solved; None = solved at detection."""
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One frame's change, measured against M_t at its tracked pose (model untouched)."""
+
+    index: int
+    used: bool
+    reason: str = ""
+    """Why the frame is not used (no overlap with the render for the scale)."""
+    scale: float = float("nan")
+    registration: dict | None = None
+    threshold_mm: float = float("nan")
+    """The frame's change threshold, mm (see ``ChangeConfig.noise_k``)."""
+    T_world_from_cam: np.ndarray | None = field(default=None, repr=False)
+    """(4, 4) the pose the maps are expressed in (the tracked pose)."""
+    mask: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) bool change mask."""
+    m_prime: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) float32 M' after imputation, mm."""
+    m_t: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) float32 render of the model M_t, mm."""
+    m_raw: np.ndarray | None = field(default=None, repr=False)
+    """(H, W) float32 M' before imputation (NaN = lost), mm."""
+    unconfirmed_px: int = 0
+    """Changed pixels dropped because other frames did not confirm them (batch)."""
+    correction: np.ndarray | None = field(default=None, repr=False)
+    """(4, 4) camera-side correction this frame's registration found and that the
+    tracker can need (None = none): what the hand-eye estimate learns from."""
+
+
+class HandEye:
+    """The camera-side (hand-eye) correction F, ``T_corrected = T_tracked @ F``.
+
+    Fixed (a batch step's F from the whole sequence) or, streaming, the robust mean of
+    the corrections of the last ``HISTORY`` registered frames; once 3 frames agree, each
+    frame's ICP is held near it by a weak prior.
+    """
+
+    HISTORY = 15
+    """Frames whose corrections form the streaming estimate of F."""
+
+    def __init__(self) -> None:
+        self.F = np.eye(4)
+        self.fixed = False
+        self.history: list[np.ndarray] = []
+
+    def current(self) -> np.ndarray:
+        if self.fixed or not self.history:
+            return self.F.copy()
+        return robust_mean_transform(self.history[-self.HISTORY :])
+
+    @property
+    def prior(self) -> bool:
+        return self.fixed or len(self.history) >= 3
+
+    def learn(self, det: Detection) -> None:
+        if det.correction is not None:
+            self.history.append(det.correction)
+
+
+def scale_free(cfg: UpdateConfig, source: object) -> bool:
+    """True when the depth's scale must be solved (not declared metric, or forced)."""
+    return cfg.solve_scale == "always" or (cfg.solve_scale == "auto" and not is_metric(source))
+
+
+def validate_estimate(depth: np.ndarray, frame: Frame, camera: Camera, metric: bool) -> np.ndarray:
+    """Check a depth source's output for ``frame``; returns (H, W) float32, NaN = invalid.
+
+    Raises :class:`InvalidInputError` on a wrong shape or an all-invalid map, and (for
+    metric sources) :class:`~chisel.core.errors.DepthUnitsError` on depth that looks like metres.
+    """
+    source = f"depth of frame {frame.index}"
+    d = np.asarray(depth)
+    camera.check_image(d, source)
+    if metric:
+        d = check_depth_mm(d, source)
+    else:
+        d = np.asarray(d, dtype=np.float32)
+        d = np.where(np.isfinite(d) & (d > 0), d, np.float32(np.nan)).astype(np.float32)
+        if not np.isfinite(d).any():
+            raise InvalidInputError(source, "depth map has no valid pixel (all 0/NaN/negative)")
+    if frame.mask is not None:
+        d = np.where(frame.mask, d, np.float32(np.nan)).astype(np.float32)
+    return d
+
+
+def sample_points(
+    camera: Camera, depth_mm: np.ndarray, T_world_from_cam: np.ndarray, max_points: int
+) -> np.ndarray:
+    """World points (N, 3) float64 of a regular pixel stride giving ~``max_points``, mm."""
+    n_valid = int(np.isfinite(depth_mm).sum())
+    stride = max(1, int(np.ceil(np.sqrt(n_valid / max_points))))
+    rays = camera.rays_cam()[::stride, ::stride]
+    d = np.asarray(depth_mm, dtype=np.float64)[::stride, ::stride]
+    ok = np.isfinite(d) & (d > 0)
+    pc = rays[ok] * d[ok][:, None]
+    return transform_points(T_world_from_cam, pc)
+
+
+def detect(
+    inp: FrameInput,
+    camera: Camera,
+    renderer: ModelRenderer,
+    hand_eye: np.ndarray,
+    prior: bool,
+    cfg: UpdateConfig,
+    solve_for_scale: bool,
+) -> Detection:
+    """Registration and change mask of one frame (the model is not touched).
+
+    hand_eye : (4, 4) camera-side correction F to start registration from; prior : hold
+    the frame's ICP near it; solve_for_scale : the estimate is up to scale
+    (:func:`scale_free`). A frame with no overlap for its scale is returned unused.
+    """
+    T = inp.T_world_from_cam
+    R = renderer.render(camera, T) if inp.render_mm is None else inp.render_mm
+    try:
+        m_raw, scale, reg = register_frame(
+            T, inp.estimate, R, inp.scale0, camera, renderer, hand_eye, prior, cfg,
+            solve_for_scale,
+        )  # fmt: skip
+    except EmptyResultError as exc:
+        return Detection(index=inp.frame.index, used=False, reason=str(exc))
+    correction = None
+    if reg is not None and reg.ok and "rejected" not in reg.extra:
+        correction = invert_rigid(T) @ reg.T_model_from_est @ T
+    m_prime = impute(m_raw, R)
+    threshold_mm = frame_threshold(m_raw, R, cfg.change)
+    return Detection(
+        index=inp.frame.index,
+        used=True,
+        scale=scale,
+        registration=None if reg is None else reg.to_dict(),
+        threshold_mm=threshold_mm,
+        T_world_from_cam=T,
+        mask=change_mask(m_prime, R, cfg.change, threshold_mm),
+        m_prime=m_prime,
+        m_t=R,
+        m_raw=m_raw,
+        correction=correction,
+    )
+
+
+def register_frame(
+    T: np.ndarray,
+    E: np.ndarray,
+    R: np.ndarray,
+    scale0: float | None,
+    camera: Camera,
+    renderer: ModelRenderer,
+    hand_eye: np.ndarray,
+    prior: bool,
+    cfg: UpdateConfig,
+    solve_for_scale: bool,
+) -> tuple[np.ndarray, float, RegistrationResult | None]:
+    """M' before imputation (NaN = lost), the scale, and the registration (None = off).
+
+    Raises :class:`EmptyResultError` when the scale cannot be solved (no overlap)."""
+    if not solve_for_scale:
+        s0 = 1.0
+    elif scale0 is not None:
+        s0 = float(scale0)
+    else:
+        s0 = solve_scale(R, E, cfg.change.threshold_mm)[0]
+    if not cfg.register:
+        return (s0 * E).astype(np.float32), s0, None
+    rcfg = cfg.registration
+    C = T @ hand_eye @ invert_rigid(T)
+    src = sample_points(camera, s0 * E, T, cfg.max_points)  # placed with the tracked pose
+    center = T[:3, 3]
+    index = renderer.index
+    sim = icp_similarity(src, center, index, C, rcfg, estimate_scale=solve_for_scale, prior=prior)
+    res = check_result(
+        sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg, sim.scale
+    )
+    if not res.ok:
+        # Lost track (first frame, a jump): global RANSAC on this frame alone, then ICP.
+        lo, hi = src.min(axis=0) - 5.0, src.max(axis=0) + 5.0
+        tv, tn = renderer.surface_points(lo, hi)
+        if len(tv) >= 10:
+            glob = register_global(src, tv, tn, rcfg, init=C)
+            if glob.ok:
+                sim = icp_similarity(
+                    src, center, index, glob.T_model_from_est, rcfg, estimate_scale=solve_for_scale
+                )
+                res = check_result(
+                    sim.T_model_from_est, sim.fitness, sim.rmse_mm, "ransac+icp",
+                    src.mean(axis=0), rcfg, sim.scale,
+                )  # fmt: skip
+    s = s0 * sim.scale
+    res.extra.update({"scale_refinement": sim.scale, "icp_iterations": sim.iterations})
+    if not res.ok:
+        # A noisy estimate never fails the frame: it keeps its tracked pose and the
+        # scale anchored to the render (as the registration ablation), and says so.
+        res.extra["fallback"] = f"registration failed ({res.reason}): tracked pose, scale only"
+        return (s0 * E).astype(np.float32), s0, res
+    # Registered estimate (camera at C @ T) re-projected into the tracked camera T.
+    T_tracked_from_registered = invert_rigid(T) @ res.T_model_from_est @ T
+    excess = tracking_excess(T_tracked_from_registered, rcfg)
+    if excess:
+        # As for a whole step (chisel.batch): a correction the tracker cannot need is
+        # the estimate's shape error; the frame keeps its tracked pose, scale only.
+        res.extra["rejected"] = f"{excess}: tracked pose, scale only"
+        return (s0 * E).astype(np.float32), s0, res
+    return warp_depth(s * E, camera, T_tracked_from_registered), s, res
+
+
+def confirm_changes(dets: list[Detection], camera: Camera, cfg: ChangeConfig) -> list[Detection]:
+    """Multi-view check of a step's change masks (batch mode): the detections with their
+    masks confirmed.
+
+    A changed pixel stays changed when at least ``cfg.min_views`` other frames that see
+    its old surface point also see it removed, and they are at least ``cfg.min_agreement``
+    of the frames that see it (:func:`chisel.change.multiview_support`). Depth errors of a
+    monocular network differ from view to view, tissue removal does not: this is what
+    keeps one frame's error from carving the model for good. The mask is cleaned again
+    afterwards (components below the minimum area go).
+    """
+    used = np.array([d.used for d in dets], dtype=bool)
+    if used.sum() < 2:
+        return list(dets)
+    shape = camera.shape
+
+    def stack(name: str, fill: float) -> np.ndarray:
+        return np.stack(
+            [getattr(d, name) if d.used else np.full(shape, fill, np.float32) for d in dets]
+        )
+
+    # A used detection has its mask and pose.
+    masks = np.stack([cast(np.ndarray, d.mask) if d.used else np.zeros(shape, bool) for d in dets])
+    poses = np.stack([cast(np.ndarray, d.T_world_from_cam) if d.used else np.eye(4) for d in dets])
+    support, observed = multiview_support(
+        masks, stack("m_t", np.nan), stack("m_raw", np.nan), camera, poses, used,
+        np.array([d.threshold_mm if d.used else np.inf for d in dets]), cfg.visible_mm,
+        cfg.contradict_fraction,
+    )  # fmt: skip
+    keep = (support >= cfg.min_views) & (support >= cfg.min_agreement * observed)
+    out = []
+    for d, m, k in zip(dets, masks, keep, strict=True):
+        if not d.used:
+            out.append(d)
+            continue
+        new = clean_mask(m & k, cfg)
+        out.append(replace(d, mask=new, unconfirmed_px=int(m.sum() - new.sum())))
+    return out

@@ -1,0 +1,92 @@
+"""What an update step did, frame by frame: the JSON report of ``chisel update``."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from chisel.update_config import UpdateConfig
+
+
+@dataclass(frozen=True)
+class FrameReport:
+    """What happened to one frame of a step (the work in flight is a
+    :class:`chisel.detect.Detection`; this is its outcome)."""
+
+    index: int
+    used: bool
+    reason: str = ""
+    scale: float = float("nan")
+    registration: dict | None = None
+    changed_fraction: float = 0.0
+    voxels_updated: int = 0
+    unconfirmed_px: int = 0
+    """Changed pixels dropped because other frames did not confirm them (batch)."""
+    threshold_mm: float = float("nan")
+    """The change threshold used for this frame, mm (see ``ChangeConfig.noise_k``)."""
+    deleted_px: int = 0
+    """Changed pixels whose first layer was deleted up to a surface the model holds."""
+    voxels_deleted: int = 0
+    """Voxels set free by deletion-first carving (included in ``voxels_updated``)."""
+    mask: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """(H, W) bool change mask that was carved, when the caller asked to keep it
+    (``keep_maps``); an output for ``chisel update --masks``, not serialised."""
+
+    def to_dict(self) -> dict:
+        return {
+            "index": self.index,
+            "used": self.used,
+            "reason": self.reason,
+            "scale": None if not np.isfinite(self.scale) else float(self.scale),
+            "registration": self.registration,
+            "changed_fraction": float(self.changed_fraction),
+            "voxels_updated": int(self.voxels_updated),
+            "unconfirmed_px": int(self.unconfirmed_px),
+            "threshold_mm": None if not np.isfinite(self.threshold_mm) else self.threshold_mm,
+            "deleted_px": int(self.deleted_px),
+            "voxels_deleted": int(self.voxels_deleted),
+        }
+
+
+@dataclass(frozen=True)
+class StepReport:
+    """Summary of one update step (serialised as the JSON report of ``chisel update``)."""
+
+    step: int
+    frames: list[FrameReport]
+    sequence_registration: dict | None
+    config: dict
+
+    @classmethod
+    def of(
+        cls, step: int, frames: list[FrameReport], sequence_registration: dict | None,
+        cfg: UpdateConfig,
+    ) -> StepReport:  # fmt: skip
+        return cls(step, frames, sequence_registration, asdict(cfg))
+
+    @property
+    def frames_used(self) -> list[int]:
+        return [f.index for f in self.frames if f.used]
+
+    @property
+    def frames_skipped(self) -> list[dict]:
+        return [{"index": f.index, "reason": f.reason} for f in self.frames if not f.used]
+
+    def to_dict(self) -> dict:
+        used = [f for f in self.frames if f.used]
+        return {
+            "step": self.step,
+            "num_frames": len(self.frames),
+            "frames_used": self.frames_used,
+            "frames_skipped": self.frames_skipped,
+            "frames_unregistered": [
+                f.index for f in self.frames if f.used and "fallback" in (f.registration or {})
+            ],
+            "changed_pixel_fraction_mean": float(np.mean([f.changed_fraction for f in used]))
+            if used
+            else 0.0,
+            "sequence_registration": self.sequence_registration,
+            "frames": [f.to_dict() for f in self.frames],
+            "config": self.config,
+        }

@@ -1,0 +1,58 @@
+"""Parameters of one update step: one home, from which ``chisel update``'s flags and its
+``--config FILE.yaml`` are generated (:mod:`chisel.core.config`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from chisel.change import ChangeConfig
+from chisel.core.config import check_fields
+from chisel.core.errors import InvalidInputError
+from chisel.registration import RegistrationConfig
+
+
+@dataclass(frozen=True)
+class UpdateConfig:
+    """Parameters of one update step."""
+
+    change: ChangeConfig = field(default_factory=ChangeConfig)
+    """Change-mask threshold and cleaning."""
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    """RANSAC + ICP parameters."""
+    register: bool = True
+    """False = the paper's registration ablation: scale only, no RANSAC/ICP."""
+    sequence_ransac: bool = True
+    """Batch mode: when ICP from the tracked poses does not register the step (no frame,
+    or a median fitness below ``MIN_TRACKER_FITNESS``), first register the whole step's
+    point cloud globally (FPFH + RANSAC + ICP)."""
+    solve_scale: Literal["auto", "always", "never"] = "auto"
+    """Solve the depth's scale (robust median of ratios to the render, then jointly with
+    the pose in per-frame ICP): "auto" = unless the depth source declares metric depth
+    (``is_metric``), whose scale is 1."""
+    max_points: int = 1500
+    """About this many pixels (a regular stride) per frame in per-frame registration."""
+    sequence_points: int = 500
+    """About this many pixels per frame in the sequence-level registration stages."""
+    hand_eye_frames: int = 20
+    """Batch mode: at most this many frames, evenly spaced, estimate the hand-eye
+    correction F (a robust median: more frames add time, not accuracy)."""
+    carve: Literal["deletion", "paper"] = "deletion"
+    """How a change is carved: "deletion" = delete the first layer along a changed ray up to
+    the next surface the model holds, fuse the new depth only where it holds nothing
+    behind (:func:`chisel.carve.carve_first_layer`); "paper" = fuse the new depth at every
+    changed pixel (the masked update alone)."""
+    allow_unused_step: bool = False
+    """When no frame of a step can be used (every registration failed): False = raise
+    :class:`EmptyResultError`; True = keep the model as it was (the step counter still
+    advances) and say so in the report. Benchmarks use True so one bad step is scored as
+    "no update" instead of stopping the run."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        if self.max_points < 100 or self.sequence_points < 100:
+            raise InvalidInputError("max_points", "use at least 100 points per frame")
+        if self.carve not in ("deletion", "paper"):
+            raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")
+        if self.hand_eye_frames < 1:
+            raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")
