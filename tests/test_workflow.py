@@ -50,22 +50,78 @@ def test_bad_config_is_refused(tmp_path: Path) -> None:
     assert "bites" in r.stdout + r.stderr
 
 
+NOISY_GT = """\
+import pathlib, sys
+import numpy as np
+src, out = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
+for i, path in enumerate(sorted((src / "depth").glob("*.npy"))):
+    d = np.load(path).astype(np.float32)
+    noise = np.random.default_rng(i).normal(0.0, 0.1, d.shape).astype(np.float32)
+    np.save(out / path.name, np.where(d > 0, d + noise, np.nan).astype(np.float32))
+"""
+
+
+def _extra_estimators(tmp_path: Path) -> Path:
+    """A config adding two researchers' estimators: a tiny exported TorchScript model
+    (relative depth) and a command that writes noisy ground truth (metric)."""
+    import torch
+
+    class Brightness(torch.nn.Module):
+        def forward(self, rgb: torch.Tensor) -> torch.Tensor:
+            return 50.0 - 0.1 * rgb.float().mean(dim=3)
+
+    torch.jit.script(Brightness()).save(str(tmp_path / "tiny.pt"))
+    (tmp_path / "noisy_gt.py").write_text(NOISY_GT)
+    extra = {
+        "tiny_net": {"torchscript": str(tmp_path / "tiny.pt")},
+        "noisy_gt": {
+            "command": f"{sys.executable} {tmp_path / 'noisy_gt.py'} {{input}} {{output}}",
+            "metric": True,
+        },
+    }
+    path = tmp_path / "extra.yaml"
+    path.write_text(yaml.safe_dump({"depth": {"extra": extra}}))
+    return path
+
+
+def test_extra_estimators_are_checked(tmp_path: Path) -> None:
+    # A built-in method's name, and an entry that is neither a model nor a command.
+    for extra, word in (
+        ({"updated": {"command": "x {input} {output}"}}, "built-in method"),
+        ({"mine": {"metric": True}}, "mine"),
+    ):
+        path = tmp_path / "extra.yaml"
+        path.write_text(yaml.safe_dump({"depth": {"extra": extra}}))
+        r = run(["-n", "--configfile", str(ROOT / "config" / "smoke.yaml"), str(path)], tmp_path)
+        assert r.returncode != 0 and word in r.stdout + r.stderr, r.stdout + r.stderr
+
+
 def test_smoke_experiment_end_to_end(tmp_path: Path) -> None:
-    r = run(["--cores", "2", *SMOKE], tmp_path, timeout_s=1200)
+    extra = ["--configfile", str(ROOT / "config" / "smoke.yaml"), str(_extra_estimators(tmp_path))]
+    r = run(["--cores", "2", *extra], tmp_path, timeout_s=1200)
     assert r.returncode == 0, r.stdout[-5000:] + r.stderr[-5000:]
     metrics = json.loads((tmp_path / "results/smoke/metrics.json").read_text())
     steps = {s["step"]: s for s in metrics["steps"]}
     assert sorted(steps) == [0, 1, 2]
     assert set(steps[0]["methods"]) == {"updated"}
     for step in (1, 2):
-        # Every configured method has its row (the paper's four and the sweep-only build).
-        assert set(steps[step]["methods"]) == set(SMOKE_METHODS)
+        # Every configured method has its row (the paper's four and the sweep-only build),
+        # and so has each researcher's estimator from depth.extra.
+        assert set(steps[step]["methods"]) == set(SMOKE_METHODS) | {"tiny_net", "noisy_gt"}
         for cell in steps[step]["methods"].values():
             assert cell["n_points"] > 0 and cell["mean_mm"] >= 0
     for name in ("metrics.csv", "metrics.md"):
         assert (tmp_path / "results/smoke/seed_0/base" / name).is_file()
     html = (tmp_path / "results/smoke/report.html").read_text()
     assert "no_update" in html and "depth_ablation" in html
+    assert "tiny_net" in html and "noisy_gt" in html
+    # Each estimator's depth went into its own update: the command's is metric, the
+    # model's relative (its scale solved per frame).
+    for name, metric in (("noisy_gt", True), ("tiny_net", False)):
+        report = tmp_path / f"results/smoke/seed_0/base/{name}/step_01/update.json"
+        frames = json.loads(report.read_text())["frames"]
+        scales = [f["scale"] for f in frames if f["used"]]
+        assert scales and (all(s == 1.0 for s in scales) == metric), (name, scales[:3])
     # An interrupted or repeated run finds nothing left to do.
-    again = run(["-n", "--cores", "2", *SMOKE], tmp_path)
+    again = run(["-n", "--cores", "2", *extra], tmp_path)
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr

@@ -29,6 +29,7 @@ _COMMANDS: dict[str, str] = {
     "mesh": "chisel.cli.cmd_model",
     "render-depth": "chisel.cli.cmd_model",
     "export-ct": "chisel.cli.cmd_ct",
+    "external-depth": "chisel.cli.cmd_extern",
 }
 
 _DESCRIPTION = """\

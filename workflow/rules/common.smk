@@ -32,6 +32,9 @@ STEPS = list(range(1, BITES + 1))
 MEM_MB = int(config.get("resources", {}).get("mem_mb", 8000))
 SWEEPS = config.get("sweeps", {})
 UPDATE_METHODS = [m for m in config["methods"] if m != "no_update"]
+# Researchers' own depth estimators (config depth.extra): one method row each, run like
+# "updated" (registration on) on the depth that `chisel external-depth` writes.
+EXTRA_DEPTH = dict(config.get("depth", {}).get("extra") or {})
 
 # How each updated method runs the updater: (depth source, registration on?).
 # "exact_noreg" exists for the pose-noise sweep (exact depth, registration off).
@@ -42,6 +45,14 @@ METHOD_SPECS = {
     "exact_noreg": ("gt", False),
     "updated_sweep": ("network", True),  # the paper's build: preop model from the sweep alone
 }
+_taken = set(METHOD_SPECS) | {"no_update", "change_aware"}
+if set(EXTRA_DEPTH) & _taken:
+    raise ValueError(
+        f"config depth.extra: {sorted(set(EXTRA_DEPTH) & _taken)} is the name of a built-in "
+        "method; name your estimator otherwise"
+    )
+METHOD_SPECS.update({name: ("extra", True) for name in EXTRA_DEPTH})
+UPDATE_METHODS += list(EXTRA_DEPTH)
 
 # Methods run per variant: "base" is the paper's table; the rest are the sweeps.
 def variant_methods(variant):
@@ -121,6 +132,8 @@ def update_inputs(wc):
         inputs["seq"] = update_sequence(wc)
     if METHOD_SPECS[wc.method][0] == "network":
         inputs["pred"] = f"{RESULTS}/seed_{wc.seed}/depth/pred/step_{wc.step}"
+    if METHOD_SPECS[wc.method][0] == "extra":
+        inputs["pred"] = f"{RESULTS}/seed_{wc.seed}/depth/extra/{wc.method}/step_{wc.step}"
     return inputs
 
 
@@ -128,7 +141,7 @@ def update_options(wc, input):
     depth, registration = METHOD_SPECS[wc.method]
     # A step whose frames all fail registration is scored as "no update", not a crash.
     opts = [f"--config {input.config}", "--allow-unused-step"]
-    opts.append(f"--depth-source sequence:{input.pred}" if depth == "network" else "--depth-source gt")
+    opts.append("--depth-source gt" if depth == "gt" else f"--depth-source sequence:{input.pred}")
     if not registration:
         opts.append("--no-register")
     kind, _, value = wc.variant.partition("-")
@@ -200,3 +213,24 @@ def change_aware_previous(wc):
     if step == 1:
         return f"{RESULTS}/seed_{wc.seed}/preop/model.npz"
     return f"{RESULTS}/seed_{wc.seed}/base/change_aware/step_{step - 1:02d}/model.npz"
+
+
+def extra_depth_inputs(wc):
+    """The rendered sequence, and the estimator's TorchScript file when it has one."""
+    inputs = {"index": f"{RESULTS}/seed_{wc.seed}/render/render.json"}
+    if "torchscript" in EXTRA_DEPTH[wc.extra]:
+        inputs["torchscript"] = EXTRA_DEPTH[wc.extra]["torchscript"]
+    return inputs
+
+
+def extra_depth_options(wc, input):
+    import shlex
+
+    spec = EXTRA_DEPTH[wc.extra]
+    if "torchscript" in spec:
+        opts = ["--torchscript", str(input.torchscript)]
+    else:
+        opts = ["--command", spec["command"]]
+    if spec.get("metric", False):
+        opts.append("--metric")
+    return " ".join(shlex.quote(o) for o in opts)

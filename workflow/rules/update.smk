@@ -47,3 +47,26 @@ rule mesh:
         ENV
     shell:
         "python -m chisel mesh --model {input.model} --out {output.mesh} > {log} 2>&1"
+
+
+rule external_depth:
+    """A researcher's own depth estimator (config depth.extra) on one step's sequence."""
+    input:
+        unpack(extra_depth_inputs),
+    output:
+        directory(f"{RESULTS}/seed_{{seed}}/depth/extra/{{extra}}/step_{{step}}"),
+    log:
+        f"{RESULTS}/logs/seed_{{seed}}/external_depth_{{extra}}_step_{{step}}.log",
+    wildcard_constraints:
+        extra="|".join(EXTRA_DEPTH) or "(?!)",
+    params:
+        seq=lambda wc, input: f"{os.path.dirname(input.index)}/step_{wc.step}",
+        opts=extra_depth_options,
+    threads: 1
+    conda:
+        ENV
+    resources:
+        mem_mb=MEM_MB,
+    shell:
+        "python -m chisel external-depth --sequence {params.seq} --out {output} {params.opts} "
+        "> {log} 2>&1"
