@@ -112,3 +112,47 @@ def test_bench_depth_train_prints_train_min_last() -> None:
 def test_bench_depth_train_refuses_a_single_phantom() -> None:
     r = run_script("bench_depth_train.py", "--phantoms", "1")
     assert r.returncode == 2 and "validation holds out whole phantoms" in r.stderr
+
+
+def test_bench_fidelity_figures_from_a_table() -> None:
+    """The goal figures of bench_fidelity.py, from a two-step table written by hand."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_fidelity", ROOT / "benchmarks/bench_fidelity.py"
+    )
+    assert spec is not None and spec.loader is not None
+    fid = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fid)
+
+    def cell(mean: float, **kw: float | None) -> dict:
+        return {"mean_mm": mean, "missing_fraction": 0.0, **kw}
+
+    metrics = {
+        "steps": [
+            {"step": 0, "methods": {"updated": cell(0.05)}},
+            {"step": 1, "methods": {
+                "no_update": cell(2.0),
+                "updated": cell(1.0, mask_precision=0.8, mask_recall=0.6, removed_dice=0.7),
+                "depth_ablation": cell(0.25, removed_dice=0.9, removed_hd95_mm=0.5),
+            }},
+            {"step": 2, "methods": {
+                "no_update": cell(4.0),
+                "updated": cell(4.4, mask_precision=None, mask_recall=0.9, removed_dice=0.8),
+                "depth_ablation": cell(0.4, removed_dice=0.95, removed_hd95_mm=1.2),
+            }},
+        ]
+    }  # fmt: skip
+    f = fid.seed_figures(metrics)
+    assert f["exact_max_mean_mm"] == 0.4 and f["exact_last_step_ratio"] == pytest.approx(0.1)
+    assert f["exact_removed_dice_min"] == 0.9 and f["exact_removed_hd95_max_mm"] == 1.2
+    assert f["updated_ratio_steps2_max"] == pytest.approx(1.1)
+    assert f["updated_ratio_max"] == pytest.approx(1.1)
+    assert f["updated_mask_recall_min"] == 0.6 and f["updated_removed_dice_min"] == 0.7
+    assert math.isnan(f["updated_mask_precision_min"])  # a step with no mask to score
+    assert not fid.meets("updated_mask_precision_min", f["updated_mask_precision_min"])
+    assert fid.meets("exact_last_step_ratio", 0.1) and not fid.meets("exact_max_mean_mm", 0.4)
+    other = {**f, "updated_ratio_max": 0.7, "exact_removed_dice_min": 0.8}
+    assert fid.worst({0: f, 1: other}, "updated_ratio_max") == pytest.approx(1.1)
+    assert fid.worst({0: f, 1: other}, "exact_removed_dice_min") == 0.8
+    assert fid.parse_seeds("0-2,5") == [0, 1, 2, 5]
