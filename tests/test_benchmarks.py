@@ -84,7 +84,9 @@ def test_bench_update_prints_fusion_ratio_and_update_fps_last() -> None:
         "--preop-frames", "4", "--frames", "4", "--repeats", "1",
     )  # fmt: skip
     figures = check_contract(
-        pairs, "update_fps", ["fusion_ratio_vs_open3d", "batch_update_fps", "peak_rss_mib"]
+        pairs,
+        "update_fps",
+        ["fusion_ratio_vs_open3d", "batch_update_fps", "update_fps_from_ct", "peak_rss_mib"],
     )
     assert number(figures["fusion_ratio_vs_open3d"]) > 0
 
