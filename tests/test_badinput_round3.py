@@ -1,0 +1,100 @@
+"""Bad input, round three (issue 17, what was left): each case is refused with one of the
+project's errors naming the file, and earlier outputs are kept."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from chisel.core.errors import CameraError, InvalidInputError, PoseError
+from chisel.core.geometry import Camera, look_at
+from chisel.io.calibration import read_calibration
+from chisel.io.sequence import Frame, Sequence, write_sequence
+
+CAM = Camera.from_fov(32, 24, 80)
+
+
+def _sequence(path: Path, n: int = 3) -> Path:
+    """A small sequence whose camera moves along x, 10-12 mm from the world origin."""
+    rng = np.random.default_rng(0)
+    frames = [
+        Frame(
+            i,
+            look_at([10.0 + i, 0.0, 0.0], [10.0 + i, 0.0, 30.0], up=[0, -1, 0]),
+            rng.integers(0, 255, (*CAM.shape, 3), dtype=np.uint8),
+            rng.uniform(5, 20, CAM.shape).astype(np.float32),
+        )
+        for i in range(n)
+    ]
+    return write_sequence(path, CAM, frames)
+
+
+def _edit_header(seq: Path, **changes: Any) -> None:
+    header = json.loads((seq / "sequence.json").read_text())
+    header.update(changes)
+    (seq / "sequence.json").write_text(json.dumps(header))
+
+
+# ------------------------------------------------------- a: pose translations in metres
+
+
+def test_sequence_poses_in_metres_are_refused_naming_poses_txt(tmp_path: Path) -> None:
+    seq = _sequence(tmp_path / "seq")
+    poses_mm = Sequence(seq).poses
+    metres = poses_mm.copy()
+    metres[:, :3, 3] /= 1000.0  # 10-12 mm written as 0.010-0.012
+    (seq / "poses.txt").write_text(
+        "\n".join(" ".join(f"{v:.17g}" for v in T.ravel()) for T in metres) + "\n"
+    )
+    with pytest.raises(PoseError, match=r"within 0\.012 of the world origin.*look like metres") as info:
+        Sequence(seq)
+    assert info.value.source == str(seq / "poses.txt")
+    assert "multiply the translations by 1000" in info.value.problem
+    # A sequence imported with the units check switched off on purpose is read as written.
+    _edit_header(seq, meta={"pose_units_checked": False})
+    np.testing.assert_array_equal(Sequence(seq).poses[:, :3, 3], metres[:, :3, 3])
+
+
+def test_one_frame_at_the_origin_is_not_taken_for_metres(tmp_path: Path) -> None:
+    # The importers' rule: a single pose near the origin is a plausible mm pose.
+    frames = [Frame(0, np.eye(4), np.zeros((*CAM.shape, 3), np.uint8))]
+    seq = write_sequence(tmp_path / "seq", CAM, frames)
+    assert len(Sequence(seq)) == 1
+
+
+# ----------------------------------------- d: header and calibration through one reader
+
+
+def test_sequence_json_nested_deep_is_one_error(tmp_path: Path) -> None:
+    seq = _sequence(tmp_path / "seq")
+    (seq / "sequence.json").write_text("[" * 100000 + "]" * 100000)
+    with pytest.raises(InvalidInputError, match="nested deeper than 64 levels") as info:
+        Sequence(seq)
+    assert info.value.source == str(seq / "sequence.json")
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        # json.loads raised RecursionError here: a traceback.
+        ("c.json", "[" * 100000 + "]" * 100000, "nested deeper than 64 levels"),
+        ("c.json", "[1, 2]", "expected a JSON object, got an array"),
+        ("c.json", '{"K": 1} junk', "invalid JSON"),
+        ("c.yaml", "- 1\n- 2\n", "expected a mapping of calibration keys"),
+        ("c.yaml", "K: [1, 2\n", "invalid YAML"),
+        ("c.yaml", "a: " + "x" * (2 << 20) + "\n", "larger than 1048576 bytes"),
+    ],
+    ids=["json-deep", "json-array", "json-junk", "yaml-list", "yaml-broken", "yaml-huge"],
+)
+def test_calibration_goes_through_the_one_json_and_yaml_reader(
+    tmp_path: Path, name: str, content: str, message: str
+) -> None:
+    path = tmp_path / name
+    path.write_text(content)
+    with pytest.raises(CameraError, match=message) as info:
+        read_calibration(path)
+    assert info.value.source == str(path)
