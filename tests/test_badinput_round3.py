@@ -50,7 +50,9 @@ def test_sequence_poses_in_metres_are_refused_naming_poses_txt(tmp_path: Path) -
     (seq / "poses.txt").write_text(
         "\n".join(" ".join(f"{v:.17g}" for v in T.ravel()) for T in metres) + "\n"
     )
-    with pytest.raises(PoseError, match=r"within 0\.012 of the world origin.*look like metres") as info:
+    with pytest.raises(
+        PoseError, match=r"within 0\.012 of the world origin.*look like metres"
+    ) as info:
         Sequence(seq)
     assert info.value.source == str(seq / "poses.txt")
     assert "multiply the translations by 1000" in info.value.problem
@@ -98,3 +100,67 @@ def test_calibration_goes_through_the_one_json_and_yaml_reader(
     with pytest.raises(CameraError, match=message) as info:
         read_calibration(path)
     assert info.value.source == str(path)
+
+
+# ------------------------------------------------- b: out of memory names the input file
+
+
+def _no_memory(*_args: Any, **_kwargs: Any) -> Any:
+    raise MemoryError
+
+
+def test_out_of_memory_in_a_reader_names_the_file(tmp_path: Path, monkeypatch) -> None:
+    import nibabel
+    import trimesh
+
+    from chisel.core.errors import ResourceLimitError
+    from chisel.io.ct import read_ct_volume
+    from chisel.io.meshfile import read_mesh_file
+    from chisel.model import TsdfModel
+
+    seq = _sequence(tmp_path / "seq")
+    opened = Sequence(seq)
+    (tmp_path / "m.npz").write_bytes(b"not a zip: np.load is reached")
+    (tmp_path / "ct.nii").write_bytes(b"\0" * 352)
+    (tmp_path / "s.ply").write_text("ply\n")
+    cases = [
+        ("numpy.load", lambda: opened.depth_mm(1), seq / "depth" / "000001.npy", "depth map"),
+        ("numpy.loadtxt", lambda: Sequence(seq), seq / "poses.txt", "pose file"),
+        ("numpy.load", lambda: TsdfModel.load(tmp_path / "m.npz"), tmp_path / "m.npz", "model"),
+        ("nibabel.load", lambda: read_ct_volume(tmp_path / "ct.nii"), tmp_path / "ct.nii", "CT"),
+        ("trimesh.load", lambda: read_mesh_file(tmp_path / "s.ply"), tmp_path / "s.ply", "mesh"),
+    ]
+    modules = {"numpy": np, "nibabel": nibabel, "trimesh": trimesh}
+    for target, call, path, what in cases:
+        module, name = target.split(".")
+        with monkeypatch.context() as m:
+            m.setattr(modules[module], name, _no_memory)
+            with pytest.raises(
+                ResourceLimitError, match=f"out of memory reading this {what}"
+            ) as info:
+                call()
+        assert info.value.source == str(path), target
+
+
+def test_out_of_memory_elsewhere_names_the_commands_inputs(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    from chisel.cli import main as chisel_main
+    from chisel.model import TsdfModel
+    from sim.cli import main as sim_main
+
+    (tmp_path / "m.npz").write_bytes(b"x")
+    monkeypatch.setattr(TsdfModel, "load", _no_memory)  # a MemoryError no reader named
+    assert (
+        chisel_main(["mesh", "--model", str(tmp_path / "m.npz"), "--out", str(tmp_path / "o.ply")])
+        == 1
+    )
+    err = capsys.readouterr().err
+    assert f"chisel mesh: error: out of memory processing --model {tmp_path / 'm.npz'} (" in err
+    assert "Traceback" not in err and not (tmp_path / "o.ply").exists()
+
+    seq = _sequence(tmp_path / "seq")
+    monkeypatch.setattr("sim.retrack.Sequence", _no_memory)
+    assert sim_main(["retrack", "--sequence", str(seq), "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err
+    assert f"sim retrack: error: out of memory processing --sequence {seq} (" in err

@@ -44,7 +44,7 @@ import numpy as np
 import trimesh
 
 from chisel.core.atomic import atomic_path, atomic_write_bytes
-from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.errors import EmptyResultError, InvalidInputError, out_of_memory_names
 from chisel.core.geometry import transform_points
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".glb")
@@ -180,13 +180,14 @@ def read_ct_volume(
     if not path.is_file():
         raise InvalidInputError(path, "CT volume file is missing")
     fmt = _suffix_kind(path)
-    if fmt == "nifti":
-        data, T, header = _read_nifti(path)
-    elif fmt == "nrrd":
-        data, T = _read_nrrd(path)
-        header = None
-    else:
+    if fmt is None:
         raise InvalidInputError(path, f"unknown CT volume type; expected one of {VOLUME_SUFFIXES}")
+    with out_of_memory_names(path, "reading this CT volume"):
+        if fmt == "nifti":
+            data, T, header = _read_nifti(path)
+        else:
+            data, T = _read_nrrd(path)
+            header = None
     if data.size == 0:
         raise InvalidInputError(path, f"volume is empty, shape {data.shape}")
     if np.issubdtype(data.dtype, np.floating) and not np.all(np.isfinite(data)):
@@ -211,6 +212,8 @@ def _read_nifti(path: Path) -> tuple[np.ndarray, np.ndarray, Any]:
         header = img.header
         sform_code = int(header["sform_code"])
         qform_code = int(header["qform_code"])
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:  # nibabel raises many types on corrupt files
         raise InvalidInputError(path, f"cannot read NIfTI: {exc}") from None
     if sform_code == 0 and qform_code == 0:
@@ -227,6 +230,8 @@ def _read_nifti(path: Path) -> tuple[np.ndarray, np.ndarray, Any]:
     ras[:3, :] *= _NIFTI_MM_PER_UNIT.get(unit, 1.0)
     try:
         data = np.asanyarray(img.dataobj)
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:
         raise InvalidInputError(path, f"cannot read NIfTI data: {exc}") from None
     data = _squeeze_to_3d(np.asarray(data), str(path))
@@ -244,6 +249,8 @@ def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
         space = reader.GetMetaData("NRRD_space") if "NRRD_space" in keys else None
         size = reader.GetSize()
         ncomp = reader.GetNumberOfComponents()
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:  # SimpleITK raises RuntimeError with ITK's message
         raise InvalidInputError(path, f"cannot read NRRD: {str(exc).strip()}") from None
     if space not in _NRRD_SPACES:
@@ -260,6 +267,8 @@ def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
         img = reader.Execute()
         if img.GetDimension() > 3:
             img = img[:, :, :, 0]
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:
         raise InvalidInputError(path, f"cannot read NRRD data: {str(exc).strip()}") from None
     D = np.asarray(img.GetDirection(), dtype=np.float64).reshape(3, 3)
@@ -429,12 +438,16 @@ def load_ct_surface(
     name = path.name.lower()
     if name.endswith(VOLUME_SUFFIXES):
         vol = read_ct_volume(path, kind)
-        return surface_from_volume(
-            vol.data, vol.T_world_from_voxel, vol.kind, iso_level, source=str(path)
-        )
+        with out_of_memory_names(path, "meshing this CT volume"):
+            return surface_from_volume(
+                vol.data, vol.T_world_from_voxel, vol.kind, iso_level, source=str(path)
+            )
     if name.endswith(MESH_SUFFIXES):
         try:
-            mesh = trimesh.load(str(path), force="mesh", process=False)
+            with out_of_memory_names(path, "reading this mesh"):
+                mesh = trimesh.load(str(path), force="mesh", process=False)
+        except InvalidInputError:
+            raise
         except Exception as exc:  # trimesh raises many types on corrupt files
             raise InvalidInputError(path, f"cannot read mesh: {exc}") from None
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:

@@ -39,6 +39,7 @@ from chisel.core.errors import (
     InvalidInputError,
     PoseError,
     ResourceLimitError,
+    out_of_memory_names,
 )
 from chisel.core.geometry import Camera, check_rigid
 from chisel.io.images import PNG_MAGIC, decode_image
@@ -170,12 +171,13 @@ def read_poses_txt(path: Path) -> np.ndarray:
     if not path.is_file():
         raise PoseError(path, "file is missing")
     text = read_text_limited(path, "pose file", PoseError)
-    try:
-        with warnings.catch_warnings():  # an empty file is refused below, by name
-            warnings.simplefilter("ignore", UserWarning)
-            arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2)
-    except ValueError as exc:
-        raise PoseError(path, f"cannot parse pose file: {exc}") from None
+    with out_of_memory_names(path, "reading this pose file"):
+        try:
+            with warnings.catch_warnings():  # an empty file is refused below, by name
+                warnings.simplefilter("ignore", UserWarning)
+                arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2)
+        except ValueError as exc:
+            raise PoseError(path, f"cannot parse pose file: {exc}") from None
     if arr.size == 0:
         raise PoseError(path, "pose file is empty")
     if arr.shape[1] != 16:
@@ -508,16 +510,19 @@ class Sequence:
         path = self.path / "depth" / f"{i:06d}.npy"
         if not path.is_file():
             raise InvalidInputError(path, "file is missing")
-        try:
-            with open(path, "rb") as fh:
-                if fh.read(6) == b"\x93NUMPY":
-                    fh.seek(0)
-                    check_npy_header(fh, path, path.stat().st_size)
-            arr = np.load(path, allow_pickle=False)
-        except (ValueError, EOFError, OSError) as exc:  # EOFError: an empty file
-            raise InvalidInputError(
-                path, f"cannot read depth (.npy without pickle): {exc}"
-            ) from None
+        with out_of_memory_names(path, "reading this depth map"):
+            try:
+                with open(path, "rb") as fh:
+                    if fh.read(6) == b"\x93NUMPY":
+                        fh.seek(0)
+                        check_npy_header(fh, path, path.stat().st_size)
+                arr = np.load(path, allow_pickle=False)
+            except InvalidInputError:  # a ValueError, but it names the file already
+                raise
+            except (ValueError, EOFError, OSError) as exc:  # EOFError: an empty file
+                raise InvalidInputError(
+                    path, f"cannot read depth (.npy without pickle): {exc}"
+                ) from None
         if not isinstance(arr, np.ndarray):  # np.load opens an .npz archive as well
             arr.close()
             raise InvalidInputError(path, "depth must be a single .npy array, not an .npz archive")
