@@ -164,3 +164,39 @@ def test_out_of_memory_elsewhere_names_the_commands_inputs(
     assert sim_main(["retrack", "--sequence", str(seq), "--out", str(tmp_path / "r")]) == 1
     err = capsys.readouterr().err
     assert f"sim retrack: error: out of memory processing --sequence {seq} (" in err
+
+
+# ---------------------------------------- c: temporary files of killed single-file writes
+
+
+def test_temp_file_of_a_killed_write_is_removed_by_the_next_write(tmp_path: Path, caplog) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from chisel.core.atomic import atomic_write_bytes
+
+    out = tmp_path / "m.npz"
+    atomic_write_bytes(out, b"earlier")
+    code = (
+        "import os, signal, sys\n"
+        "from chisel.core.atomic import atomic_path\n"
+        "with atomic_path(sys.argv[1]) as tmp:\n"
+        "    tmp.write_bytes(b'half')\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(out)], timeout=120)
+    assert proc.returncode == -signal.SIGKILL
+    killed = [p for p in tmp_path.iterdir() if p != out]
+    assert len(killed) == 1 and killed[0].read_bytes() == b"half"  # what a kill leaves
+    assert out.read_bytes() == b"earlier"
+    live = tmp_path / f".m.npz.tmp-{os.getppid()}-abcd1234.npz"  # a live concurrent writer
+    live.write_bytes(b"in progress")
+    legacy = tmp_path / ".m.npz.k3j_9xq2.npz"  # an older version's name: no pid
+    legacy.write_bytes(b"old")
+    with caplog.at_level("WARNING"):
+        atomic_write_bytes(out, b"next")
+    assert out.read_bytes() == b"next"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name, legacy.name])
+    assert f"{legacy} is left from an interrupted run; safe to delete" in caplog.text
