@@ -200,3 +200,61 @@ def test_temp_file_of_a_killed_write_is_removed_by_the_next_write(tmp_path: Path
     assert out.read_bytes() == b"next"
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name, legacy.name])
     assert f"{legacy} is left from an interrupted run; safe to delete" in caplog.text
+
+
+# ---------------------------------------------------------- e: NIfTI headers (see also F)
+
+
+def _nifti(path: Path, **fields: tuple[int, str, Any]) -> Path:
+    """A small valid label NIfTI with header fields overwritten: name=(offset, fmt, value)."""
+    import gzip
+    import struct
+
+    from chisel.io.ct import nifti_bytes
+
+    data = np.zeros((4, 5, 6), np.int16)
+    data[1:3, 1:4, 2:5] = 1
+    raw = bytearray(nifti_bytes(data, np.diag([0.5, 0.6, 0.7, 1.0]), compress=False))
+    for offset, fmt, value in fields.values():
+        struct.pack_into(fmt, raw, offset, value)
+    raw += bytes(4096)  # room for a wider data type
+    path.write_bytes(gzip.compress(bytes(raw)) if path.name.endswith(".gz") else bytes(raw))
+    return path
+
+
+def test_nifti_headers_that_crashed_or_allocated_are_refused(tmp_path: Path) -> None:
+    import tracemalloc
+
+    from chisel.core.errors import ResourceLimitError
+    from chisel.io.ct import read_ct_volume
+
+    cases = [
+        # RGB voxels: np.min raised numpy's UFuncTypeError (a traceback)
+        ({"datatype": (70, "<h", 128)}, InvalidInputError, "voxels must be real numbers"),
+        # complex voxels: read with the imaginary part silently dropped
+        ({"datatype": (70, "<h", 32)}, InvalidInputError, "got data type complex64"),
+        # a spatial unit code that is no unit: nibabel's KeyError (a traceback)
+        ({"xyzt_units": (123, "<B", 4)}, InvalidInputError, "spatial unit code 4"),
+        # 800 MB declared in a small .nii.gz: nibabel allocated it before reading
+        (
+            {"dim1": (42, "<h", 2000), "dim2": (44, "<h", 2000), "dim3": (46, "<h", 100)},
+            InvalidInputError,
+            "NIfTI declares 800000000 bytes of data .* but the file holds",
+        ),
+        (
+            {"dim1": (42, "<h", 32767), "dim2": (44, "<h", 32767), "dim3": (46, "<h", 32767)},
+            ResourceLimitError,
+            r"over the limit of 8589934592 bytes",
+        ),
+    ]
+    for fields, error, message in cases:
+        path = _nifti(tmp_path / "ct.nii.gz", **fields)
+        tracemalloc.start()
+        try:
+            with pytest.raises(error, match=message) as info:
+                read_ct_volume(path)
+        finally:
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+        assert info.value.source == str(path)
+        assert peak < 64 * 2**20, (fields, peak)
