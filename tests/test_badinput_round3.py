@@ -258,3 +258,39 @@ def test_nifti_headers_that_crashed_or_allocated_are_refused(tmp_path: Path) -> 
             tracemalloc.stop()
         assert info.value.source == str(path)
         assert peak < 64 * 2**20, (fields, peak)
+
+
+# ------------------------------------------------------- f: a fresh hostile pass (found)
+
+
+def test_an_output_that_is_a_symlink_loop_is_one_line(tmp_path: Path, monkeypatch, capsys) -> None:
+    # Path.resolve raised RuntimeError ("Symlink loop"): a traceback from chisel and phantoms.
+    from chisel.cli import main as chisel_main
+    from phantoms.cli import main as phantoms_main
+    from sim.cli import main as sim_main
+
+    monkeypatch.chdir(tmp_path)
+    Path("loop").symlink_to("loop")
+    seq = _sequence(tmp_path / "seq")
+    (tmp_path / "m.npz").write_bytes(b"x")
+    runs = [
+        (chisel_main, ["mesh", "--model", "m.npz", "--out", "loop"], "chisel mesh"),
+        (chisel_main, ["mesh", "--model", "m.npz", "--out", "loop/x.ply"], "chisel mesh"),
+        (sim_main, ["retrack", "--sequence", str(seq), "--out", "loop"], "sim retrack"),
+        (phantoms_main, ["generate", "--seed", "0", "--out", "loop"], "phantoms generate"),
+    ]
+    for main, argv, prog in runs:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert f"{prog}: error: " in err and "cannot resolve the path: Symlink loop" in err, err
+        assert "Traceback" not in err
+
+
+def test_a_morphology_kernel_wider_than_any_image_is_refused() -> None:
+    # --open-px 1000000000 ran registration, then died of MemoryError in OpenCV.
+    from chisel.change import ChangeConfig
+
+    for name in ("open_px", "close_px"):
+        with pytest.raises(InvalidInputError, match=rf"{name}: must be at most 16384 px"):
+            ChangeConfig(**{name: 10**9})
+    assert ChangeConfig(open_px=16384).open_px == 16384

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from chisel.core.atomic import overlap
+from chisel.core.atomic import overlap, resolved
 from chisel.core.config import finite_float as finite_float  # re-exported: one home
 from chisel.core.errors import InvalidInputError
 
@@ -98,7 +98,7 @@ def check_outputs(args: argparse.Namespace) -> None:
             outputs.append((f"{_option(dest)} sidecar", Path(extra)))
     for i, (la, a) in enumerate(outputs):
         for lb, b in outputs[i + 1 :]:
-            if a.resolve() == b.resolve():
+            if resolved(a) == resolved(b):
                 raise InvalidInputError(
                     lb, f"{b} is also {la}: one output would overwrite the other"
                 )

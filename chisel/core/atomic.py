@@ -157,11 +157,20 @@ def _umask() -> int:
     return umask
 
 
+def resolved(path: str | Path) -> Path:
+    """``path`` with links and ``..`` resolved; a link loop is an :class:`InvalidInputError`
+    naming it (``Path.resolve`` raises ``RuntimeError``, a traceback on the command line)."""
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError) as exc:
+        raise InvalidInputError(path, f"cannot resolve the path: {exc}") from None
+
+
 def overlap(out: str | Path, inp: str | Path) -> Literal["replaces", "inside"] | None:
     """How an output path meets an input path: ``"replaces"`` when it is the input or holds
     it (writing it would destroy the input), ``"inside"`` when it lies inside the input,
     else None. Paths are compared resolved (``..`` and links followed)."""
-    o, i = Path(out).resolve(), Path(inp).resolve()
+    o, i = resolved(out), resolved(inp)
     if o == i or o in i.parents:
         return "replaces"
     if i in o.parents:
