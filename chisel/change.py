@@ -25,6 +25,7 @@ from chisel.core.config import check_fields
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
 from chisel.fusion import distort
+from chisel.io.limits import MAX_IMAGE_SIDE_PX
 
 MIN_SCALE_PIXELS = 50
 """Fewest pixels valid in both the render and the estimate for a scale to be solved."""
@@ -76,6 +77,14 @@ class ChangeConfig:
         for name in ("open_px", "close_px", "min_area_px", "min_views"):
             if int(getattr(self, name)) < 0:
                 raise InvalidInputError(name, f"must be >= 0, got {getattr(self, name)}")
+        # A kernel wider than any image is meaningless, and OpenCV would allocate its square.
+        for name in ("open_px", "close_px"):
+            if int(getattr(self, name)) > MAX_IMAGE_SIDE_PX:
+                raise InvalidInputError(
+                    name,
+                    f"must be at most {MAX_IMAGE_SIDE_PX} px (the widest image read), "
+                    f"got {getattr(self, name)}",
+                )
 
 
 def solve_scale(

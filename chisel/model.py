@@ -34,7 +34,7 @@ from typing import Literal
 import numpy as np
 
 from chisel.core.atomic import atomic_savez
-from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.core.errors import FormatVersionError, InvalidInputError, out_of_memory_names
 from chisel.io.limits import check_npz_members
 
 MODEL_FORMAT = "endoscopic-chisel/model"
@@ -246,15 +246,17 @@ class TsdfModel:
         if not path.is_file():
             raise InvalidInputError(path, "model file is missing")
         check_npz_members(path)  # declared array sizes, before anything is unpacked
-        try:
-            loaded = np.load(path, allow_pickle=False)
-            if isinstance(loaded, np.lib.npyio.NpzFile):
-                with loaded as z:
-                    data = {k: z[k] for k in z.files}
-        except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
-            raise InvalidInputError(
-                path, f"cannot read model (.npz without pickle): {exc}"
-            ) from None
+        # Outside the try: its ValueError clause would rewrap the error naming the file.
+        with out_of_memory_names(path, "reading this model file"):
+            try:
+                loaded = np.load(path, allow_pickle=False)
+                if isinstance(loaded, np.lib.npyio.NpzFile):
+                    with loaded as z:
+                        data = {k: z[k] for k in z.files}
+            except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
+                raise InvalidInputError(
+                    path, f"cannot read model (.npz without pickle): {exc}"
+                ) from None
         if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array
             raise InvalidInputError(path, "not a model file: a single .npy array, not an .npz")
         fmt = str(data.get("format", ""))

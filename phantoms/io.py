@@ -33,7 +33,11 @@ def check_output_dir(path: str | Path) -> Path:
     if path.exists() and not path.is_dir():
         raise OutputError(path, "exists and is not a folder")
     cwd = Path.cwd().resolve()
-    if path.resolve() == cwd or path.resolve() in cwd.parents:
+    try:
+        resolved = path.resolve()
+    except (OSError, RuntimeError) as exc:  # a link loop: RuntimeError, a traceback
+        raise OutputError(path, f"cannot resolve the path: {exc}") from None
+    if resolved == cwd or resolved in cwd.parents:
         # The atomic swap replaces the folder whole: `--out .` would delete its contents.
         raise OutputError(path, "holds the current folder; replacing it would delete that")
     parent = path.parent

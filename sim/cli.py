@@ -271,4 +271,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
-    return run_command(f"sim {args.command}", lambda: args.func(args))
+    # Named if memory runs out outside every reader (which name their own file).
+    inputs = [
+        f"--{dest.replace('_', '-')} {value}"
+        for dest, value in vars(args).items()
+        if dest != "out" and isinstance(value, Path) and value.exists()
+    ]
+    return run_command(f"sim {args.command}", lambda: args.func(args), inputs)

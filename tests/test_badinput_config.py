@@ -252,7 +252,7 @@ def test_bad_phantom_json_value(
 
 @pytest.mark.parametrize(
     ("content", "problem"),
-    [(b"[1, 2, 3]", "expected a JSON object, got list"), (b"\xff\xfe\x00\x81", "not a text")],
+    [(b"[1, 2, 3]", "expected a JSON object, got an array"), (b"\xff\xfe\x00\x81", "not a text")],
 )
 def test_bad_phantom_json_file(toy_dir: Path, tmp_path: Path, content: bytes, problem: str) -> None:
     d, _ = _copy(toy_dir, tmp_path)

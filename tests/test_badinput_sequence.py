@@ -206,7 +206,7 @@ def test_malformed_header_is_one_error_naming_sequence_json(
     [
         (b"[1]", "expected a JSON object, got an array"),
         (b'"text"', "expected a JSON object, got a string"),
-        (b'\xff\xfe{"format": 1}', "not UTF-8 text"),
+        (b'\xff\xfe{"format": 1}', "not a text file"),
         (b"{not json", "invalid JSON"),
     ],
     ids=["array", "string", "non-utf8", "not-json"],

@@ -327,3 +327,77 @@ def test_model_npz(base: Path, data: st.DataObject, cut: int | None) -> None:
     with _watched(base / "outside"):
         _refused_or_read(lambda: TsdfModel.load(path), work)
     shutil.rmtree(work)
+
+
+# ---------------------------------------------------------------------- NIfTI headers
+
+_shorts = st.one_of(
+    st.sampled_from([-32768, -1, 0, 1, 2, 3, 4, 5, 7, 8, 16, 100, 2000, 32767]),
+    st.integers(-32768, 32767),
+)
+_floats = st.one_of(
+    st.sampled_from([0.0, -1.0, 1e-30, 1e30, 3.4e38, float("nan"), float("inf"), -float("inf")]),
+    st.floats(width=32, allow_nan=True, allow_infinity=True),
+)
+# The NIfTI data type codes (2 uint8 ... 128 RGB, 1792 complex128, 2304 RGBA) and others.
+_datatypes = st.sampled_from(
+    [2, 4, 8, 16, 32, 64, 128, 256, 512, 768, 1024, 1280, 1536, 1792, 2048, 2304, 0, 1, -1]
+)
+_NIFTI_FIELDS: dict[str, tuple[int, str, st.SearchStrategy[Any]]] = {
+    # name: (offset in the NIfTI-1 header, struct format, values a broken file holds)
+    "sizeof_hdr": (0, "<i", st.sampled_from([348, 540, 0, -1, 2**31 - 1])),
+    **{f"dim{i}": (40 + 2 * i, "<h", _shorts) for i in range(5)},
+    "datatype": (70, "<h", _datatypes),
+    "bitpix": (72, "<h", _shorts),
+    **{f"pixdim{i}": (76 + 4 * i, "<f", _floats) for i in range(4)},
+    "vox_offset": (108, "<f", _floats),
+    "scl_slope": (112, "<f", _floats),
+    "scl_inter": (116, "<f", _floats),
+    "xyzt_units": (123, "<B", st.integers(0, 255)),
+    "qform_code": (252, "<h", _shorts),
+    "sform_code": (254, "<h", _shorts),
+    "quatern_b": (256, "<f", _floats),
+    "quatern_d": (264, "<f", _floats),
+    "qoffset_x": (268, "<f", _floats),
+    "srow_x0": (280, "<f", _floats),
+    "srow_x3": (292, "<f", _floats),
+    "srow_y1": (300, "<f", _floats),
+    "srow_z2": (320, "<f", _floats),
+}
+
+
+@pytest.fixture(scope="module")
+def nifti_raw() -> bytes:
+    """A small valid NIfTI-1 (uncompressed bytes): a 4x5x6 int16 label volume, sform set."""
+    from chisel.io.ct import nifti_bytes
+
+    data = np.zeros((4, 5, 6), np.int16)
+    data[1:3, 1:4, 2:5] = 1
+    return nifti_bytes(data, np.diag([0.5, 0.6, 0.7, 1.0]), compress=False)
+
+
+@settings(FUZZ, max_examples=int(os.environ.get("NIFTI_FUZZ_EXAMPLES", "60")))
+@given(data=st.data())
+def test_nifti_header(base: Path, nifti_raw: bytes, data: st.DataObject) -> None:
+    import gzip
+    import struct
+
+    from chisel.io.ct import read_ct_volume
+
+    raw = bytearray(nifti_raw)
+    names = data.draw(st.lists(st.sampled_from(sorted(_NIFTI_FIELDS)), min_size=1, max_size=4))
+    # The data type is where readers break (RGB, complex voxels): change it more often.
+    for name in names + ["datatype"] * data.draw(st.integers(0, 1)):
+        offset, fmt, values = _NIFTI_FIELDS[name]
+        struct.pack_into(fmt, raw, offset, data.draw(values))
+    # Cut the file, or pad it so that a wider datatype or a larger dim still finds data.
+    cut = data.draw(st.one_of(st.none(), st.none(), st.integers(0, len(raw))))
+    pad = data.draw(st.sampled_from([0, 240, 4096]))
+    body = bytes(raw if cut is None else raw[:cut]) + bytes(pad)
+    compressed = data.draw(st.booleans())
+    work = Path(tempfile.mkdtemp(dir=base))
+    path = work / ("ct.nii.gz" if compressed else "ct.nii")
+    path.write_bytes(gzip.compress(body, mtime=0) if compressed else body)
+    with _watched(base / "outside"):
+        _refused_or_read(lambda: read_ct_volume(path), work)
+    shutil.rmtree(work)

@@ -14,7 +14,7 @@ import importlib
 import logging
 import sys
 
-from chisel.cli.args import check_outputs
+from chisel.cli.args import check_outputs, input_paths
 from chisel.core.errors import run_command
 
 _COMMANDS: dict[str, str] = {
@@ -83,4 +83,5 @@ def main(argv: list[str] | None = None) -> int:
         check_outputs(args)  # before anything is read or written
         return args.func(args)
 
-    return run_command(f"chisel {args.command}", command)
+    inputs = [f"{option} {path}" for option, path in input_paths(args)]
+    return run_command(f"chisel {args.command}", command, inputs)

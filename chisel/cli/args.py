@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from chisel.core.atomic import overlap
+from chisel.core.atomic import overlap, resolved
 from chisel.core.config import finite_float as finite_float  # re-exported: one home
 from chisel.core.errors import InvalidInputError
 
@@ -73,6 +73,18 @@ def _paths(value: Any) -> Iterator[Path]:
             continue
 
 
+def input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:
+    """(option, path) of every existing path the parsed arguments name that is not an
+    output: the command's inputs, for the overlap checks and the out-of-memory message."""
+    out_dests = set(getattr(args, "_outputs", []))
+    return [
+        (_option(dest), inp)
+        for dest, value in vars(args).items()
+        if dest not in out_dests and not dest.startswith("_") and not callable(value)
+        for inp in _paths(value)
+    ]
+
+
 def check_outputs(args: argparse.Namespace) -> None:
     """Raise :class:`InvalidInputError` (naming the option) if an output would overwrite an
     input or another output of the same command line."""
@@ -86,23 +98,18 @@ def check_outputs(args: argparse.Namespace) -> None:
             outputs.append((f"{_option(dest)} sidecar", Path(extra)))
     for i, (la, a) in enumerate(outputs):
         for lb, b in outputs[i + 1 :]:
-            if a.resolve() == b.resolve():
+            if resolved(a) == resolved(b):
                 raise InvalidInputError(
                     lb, f"{b} is also {la}: one output would overwrite the other"
                 )
-    for dest, value in vars(args).items():
-        if dest in out_dests or dest.startswith("_") or callable(value):
-            continue
-        for inp in _paths(value):
-            for label, o in outputs:
-                how = overlap(o, inp)
-                if how == "replaces":
-                    raise InvalidInputError(
-                        label, f"{o} would overwrite the input {_option(dest)} {inp}"
-                    )
-                if how == "inside" and inp.is_dir():
-                    raise InvalidInputError(
-                        label,
-                        f"{o} lies inside the input folder {_option(dest)} {inp}: "
-                        "write outputs outside the inputs",
-                    )
+    for option, inp in input_paths(args):
+        for label, o in outputs:
+            how = overlap(o, inp)
+            if how == "replaces":
+                raise InvalidInputError(label, f"{o} would overwrite the input {option} {inp}")
+            if how == "inside" and inp.is_dir():
+                raise InvalidInputError(
+                    label,
+                    f"{o} lies inside the input folder {option} {inp}: "
+                    "write outputs outside the inputs",
+                )

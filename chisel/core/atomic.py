@@ -11,6 +11,7 @@ import ctypes
 import errno
 import logging
 import os
+import re
 import shutil
 import signal
 import tempfile
@@ -46,8 +47,10 @@ def _temp_beside(path: Path, suffix: str) -> Path:
     if path.is_dir():
         raise InvalidInputError(path, "is a folder; expected the path of a file to write")
     check_writable_parent(path)
+    # The writer's pid in the name lets the next write of ``path`` remove it if this
+    # process is killed before it can (recover_leftovers), as for folders.
     fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent
+        prefix=f".{path.name}.tmp-{os.getpid()}-", suffix=suffix or path.suffix, dir=path.parent
     )
     os.close(fd)
     # mkstemp creates 0600; give the final file the permissions a plain open() would.
@@ -108,6 +111,9 @@ def atomic_paths(*paths: str | Path, suffixes: Sequence[str] = ()) -> Iterator[l
     """
     finals = [Path(p) for p in paths]
     ends = (list(suffixes) + [""] * len(finals))[: len(finals)]
+    for final in finals:
+        for stale in recover_leftovers(final):
+            log.warning("%s: %s is left from an interrupted run; safe to delete", final, stale)
     temps: list[Path] = []
     try:
         for final, end in zip(finals, ends, strict=True):
@@ -151,11 +157,20 @@ def _umask() -> int:
     return umask
 
 
+def resolved(path: str | Path) -> Path:
+    """``path`` with links and ``..`` resolved; a link loop is an :class:`InvalidInputError`
+    naming it (``Path.resolve`` raises ``RuntimeError``, a traceback on the command line)."""
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError) as exc:
+        raise InvalidInputError(path, f"cannot resolve the path: {exc}") from None
+
+
 def overlap(out: str | Path, inp: str | Path) -> Literal["replaces", "inside"] | None:
     """How an output path meets an input path: ``"replaces"`` when it is the input or holds
     it (writing it would destroy the input), ``"inside"`` when it lies inside the input,
     else None. Paths are compared resolved (``..`` and links followed)."""
-    o, i = Path(out).resolve(), Path(inp).resolve()
+    o, i = resolved(out), resolved(inp)
     if o == i or o in i.parents:
         return "replaces"
     if i in o.parents:
@@ -231,14 +246,23 @@ def _owner_pid(leftover: Path, kind: str) -> int | None:
     return int(head) if head.isdigit() else None
 
 
+def _legacy_temp_file(name: str, entry: str) -> bool:
+    """Whether ``entry`` is a temporary file an older version wrote for ``name``: the
+    ``mkstemp`` name ``.NAME.<8 random characters><suffix>``, without a pid."""
+    return re.fullmatch(rf"\.{re.escape(name)}\.[a-z0-9_]{{8}}(\.[A-Za-z0-9]+)?", entry) is not None
+
+
 def recover_leftovers(path: Path) -> list[Path]:
     """Tidy what killed writers of ``path`` left beside it; returns what remains, named.
 
-    A hidden ``.NAME.old-PID`` whose writer is dead holds the earlier output when the kill
-    fell between the two renames of the fallback swap: it is moved back to ``path`` if
-    ``path`` is missing, else deleted. A ``.NAME.tmp-PID-*`` of a dead writer is deleted.
-    Leftovers of live writers (a concurrent run) are left alone; ones without a pid (an
-    older version's) are returned so the caller can name them.
+    A hidden ``.NAME.old-PID`` folder whose writer is dead holds the earlier output when
+    the kill fell between the two renames of the fallback swap: it is moved back to
+    ``path`` if ``path`` is missing, else deleted. A ``.NAME.tmp-PID-*`` (the temporary
+    folder of :func:`atomic_dir` or file of :func:`atomic_paths`) of a dead writer is
+    deleted. Leftovers of live writers (a concurrent run) are left alone: a pid is
+    checked on this machine only, so a folder shared between machines must have one
+    writer of a path at a time (the workflow's jobs write distinct paths). Ones without a
+    pid (an older version's) are returned so the caller can name them.
     """
     unknown: list[Path] = []
     parent = path.parent
@@ -246,8 +270,13 @@ def recover_leftovers(path: Path) -> list[Path]:
         return unknown
     olds: list[Path] = []
     for entry in parent.iterdir():
+        if _legacy_temp_file(path.name, entry.name) and entry.is_file():
+            unknown.append(entry)
         for kind in ("old", "tmp"):
-            if not entry.name.startswith(f".{path.name}.{kind}-") or not entry.is_dir():
+            if not entry.name.startswith(f".{path.name}.{kind}-"):
+                continue
+            is_file = entry.is_file() and not entry.is_symlink()
+            if not (entry.is_dir() or (kind == "tmp" and is_file)):
                 continue
             pid = _owner_pid(entry, kind)
             if pid is None:
@@ -255,6 +284,8 @@ def recover_leftovers(path: Path) -> list[Path]:
             elif pid != os.getpid() and not _pid_alive(pid):
                 if kind == "old":
                     olds.append(entry)
+                elif is_file:
+                    entry.unlink(missing_ok=True)
                 else:
                     shutil.rmtree(entry, ignore_errors=True)
     for old in sorted(olds, key=lambda p: p.stat().st_mtime, reverse=True):

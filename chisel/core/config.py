@@ -238,14 +238,21 @@ def config_from_dict(
         raise error(where or "config", str(exc)) from None
 
 
-def read_yaml_mapping(path: str | Path, error: type[ConfigError] = ConfigError) -> dict:
-    """A YAML file's top-level mapping (an empty file is ``{}``), or ``error`` naming it."""
+def read_yaml_mapping(
+    path: str | Path,
+    error: type[InvalidInputError] = ConfigError,
+    what: str = "configuration",
+) -> dict:
+    """A YAML file's top-level mapping (an empty file is ``{}``), or ``error`` naming it.
+
+    ``what`` names the kind of file in messages ("configuration", "calibration").
+    """
     p = Path(path)
     if not p.is_file():
-        raise error(p, "configuration file does not exist")
+        raise error(p, f"{what} file does not exist")
     try:
         if p.stat().st_size > MAX_CONFIG_BYTES:
-            raise error(p, f"larger than {MAX_CONFIG_BYTES} bytes: not a configuration file")
+            raise error(p, f"larger than {MAX_CONFIG_BYTES} bytes: not a {what} file")
         data = yaml.safe_load(p.read_text(encoding="utf-8"))
     except UnicodeDecodeError:
         raise error(p, "not a text file (invalid UTF-8)") from None
@@ -259,7 +266,7 @@ def read_yaml_mapping(path: str | Path, error: type[ConfigError] = ConfigError) 
     if data is None:  # an empty file (or only comments): all defaults
         return {}
     if not isinstance(data, dict):
-        raise error(p, f"expected a mapping of configuration keys, got {show(data)}")
+        raise error(p, f"expected a mapping of {what} keys, got {show(data)}")
     return data
 
 

@@ -7,10 +7,11 @@ errors also derive from ``ValueError`` so generic callers can catch them.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 
@@ -85,13 +86,32 @@ class OutputError(ChiselError, OSError):
         return f"{self.source}: {self.problem}"
 
 
-def run_command(prog: str, command: Callable[[], int | None]) -> int:
+OUT_OF_MEMORY_HINT = "image size, frame count or voxel size too large?"
+
+
+@contextlib.contextmanager
+def out_of_memory_names(source: str | Path, doing: str) -> Iterator[None]:
+    """Turn a ``MemoryError`` inside the block into a :class:`ResourceLimitError` naming
+    ``source``: past this point nothing could tell the user which input was too large.
+
+    ``doing`` completes "out of memory ...", e.g. "reading this model file".
+    """
+    try:
+        yield
+    except MemoryError:
+        raise ResourceLimitError(source, f"out of memory {doing} ({OUT_OF_MEMORY_HINT})") from None
+
+
+def run_command(
+    prog: str, command: Callable[[], int | None], inputs: Iterable[str | Path] = ()
+) -> int:
     """Run a CLI command; what the user can act on becomes one line on stderr, no traceback.
 
     The project's own errors and OS errors (missing file, disk full) exit 1, an exhausted
-    memory exits 1 with a hint, Ctrl-C exits 130. SIGTERM is turned into ``SystemExit``
-    (exit 143) so that ``finally`` blocks run and atomic writers remove their temporary
-    folders instead of leaving them beside the output.
+    memory exits 1 naming ``inputs`` (the command's input files: the ``MemoryError`` came
+    from outside every reader's :func:`out_of_memory_names`), Ctrl-C exits 130. SIGTERM is
+    turned into ``SystemExit`` (exit 143) so that ``finally`` blocks run and atomic
+    writers remove their temporary folders instead of leaving them beside the output.
     """
 
     def _terminate(signum: int, frame: object) -> None:
@@ -107,9 +127,9 @@ def run_command(prog: str, command: Callable[[], int | None]) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         sys.stderr.write(f"{prog}: error: {where}{exc.strerror or exc}\n")
     except MemoryError:
-        sys.stderr.write(
-            f"{prog}: error: out of memory (image size, frame count or voxel size too large?)\n"
-        )
+        named = ", ".join(str(p) for p in inputs)
+        where = f" processing {named}" if named else ""
+        sys.stderr.write(f"{prog}: error: out of memory{where} ({OUT_OF_MEMORY_HINT})\n")
     except KeyboardInterrupt:
         sys.stderr.write(f"{prog}: interrupted; earlier outputs are unchanged\n")
         return 130

@@ -18,16 +18,16 @@ ratio at another resolution (distortion coefficients are resolution-free).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
+from chisel.core.config import read_yaml_mapping
 from chisel.core.errors import CameraError
 from chisel.core.geometry import Camera
+from chisel.io.manifest import read_json_manifest
 
 _K_KEYS = ("camera_matrix", "K", "cameraMatrix", "intrinsic_matrix")
 _DIST_KEYS = ("distortion_coefficients", "dist", "D", "distCoeffs", "dist_coeffs")
@@ -195,14 +195,9 @@ def read_calibration(path: str | Path) -> Calibration:
         raise CameraError(source, "calibration file not found")
     suffix = path.suffix.lower()
     if suffix == ".json":
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise CameraError(source, f"invalid JSON: {exc}") from None
-        if isinstance(data, dict) and isinstance(data.get("camera"), dict):
+        data = read_json_manifest(path, CameraError)
+        if isinstance(data.get("camera"), dict):
             data = data["camera"]  # a sequence.json
-        if not isinstance(data, dict):
-            raise CameraError(source, "expected a JSON object")
         return _from_mapping(data, source)
     if suffix not in (".yaml", ".yml", ".xml"):
         raise CameraError(
@@ -213,14 +208,7 @@ def read_calibration(path: str | Path) -> Calibration:
         return calib
     if suffix == ".xml":
         raise CameraError(source, "OpenCV cannot read this XML file or it has no camera_matrix")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except UnicodeDecodeError:
-        raise CameraError(source, "not a text file (invalid UTF-8)") from None
-    except yaml.YAMLError as exc:
-        raise CameraError(source, f"invalid YAML: {' '.join(str(exc).split())}") from None
-    if not isinstance(data, dict):
-        raise CameraError(source, "expected a YAML mapping with camera_matrix")
+    data = read_yaml_mapping(path, CameraError, what="calibration")
     return _from_mapping(data, source)
 
 

@@ -36,6 +36,7 @@ of the affine's determinant.
 from __future__ import annotations
 
 import gzip
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
@@ -44,8 +45,14 @@ import numpy as np
 import trimesh
 
 from chisel.core.atomic import atomic_path, atomic_write_bytes
-from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.errors import (
+    EmptyResultError,
+    InvalidInputError,
+    ResourceLimitError,
+    out_of_memory_names,
+)
 from chisel.core.geometry import transform_points
+from chisel.io.limits import MAX_ARRAY_BYTES
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".glb")
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
@@ -180,13 +187,18 @@ def read_ct_volume(
     if not path.is_file():
         raise InvalidInputError(path, "CT volume file is missing")
     fmt = _suffix_kind(path)
-    if fmt == "nifti":
-        data, T, header = _read_nifti(path)
-    elif fmt == "nrrd":
-        data, T = _read_nrrd(path)
-        header = None
-    else:
+    if fmt is None:
         raise InvalidInputError(path, f"unknown CT volume type; expected one of {VOLUME_SUFFIXES}")
+    with out_of_memory_names(path, "reading this CT volume"):
+        if fmt == "nifti":
+            data, T, header = _read_nifti(path)
+        else:
+            data, T = _read_nrrd(path)
+            header = None
+    if data.dtype.kind not in "biuf":  # RGB (structured) or complex voxels
+        raise InvalidInputError(
+            path, f"voxels must be real numbers (CT values or labels), got data type {data.dtype}"
+        )
     if data.size == 0:
         raise InvalidInputError(path, f"volume is empty, shape {data.shape}")
     if np.issubdtype(data.dtype, np.floating) and not np.all(np.isfinite(data)):
@@ -211,6 +223,8 @@ def _read_nifti(path: Path) -> tuple[np.ndarray, np.ndarray, Any]:
         header = img.header
         sform_code = int(header["sform_code"])
         qform_code = int(header["qform_code"])
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:  # nibabel raises many types on corrupt files
         raise InvalidInputError(path, f"cannot read NIfTI: {exc}") from None
     if sform_code == 0 and qform_code == 0:
@@ -222,15 +236,63 @@ def _read_nifti(path: Path) -> tuple[np.ndarray, np.ndarray, Any]:
     # nibabel's rule (the NIfTI standard's): the sform when its code is set, else the qform.
     ras = header.get_sform() if sform_code > 0 else header.get_qform()
     ras = check_voxel_affine(ras, path)  # NaN / sheared / singular before any use
-    unit = header.get_xyzt_units()[0]
+    try:
+        unit = header.get_xyzt_units()[0]
+    except KeyError:  # codes 4-7 of the spatial bits are not units
+        code = int(header["xyzt_units"]) & 0x07
+        raise InvalidInputError(
+            path, f"NIfTI xyzt_units has spatial unit code {code}, which is no unit (0-3)"
+        ) from None
     ras = ras.copy()
     ras[:3, :] *= _NIFTI_MM_PER_UNIT.get(unit, 1.0)
+    _check_nifti_data_size(path, header, int(getattr(img.dataobj, "offset", 0)))
     try:
         data = np.asanyarray(img.dataobj)
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:
-        raise InvalidInputError(path, f"cannot read NIfTI data: {exc}") from None
+        # nibabel's messages span lines and repeat the path; the CLI prints one line.
+        why = " ".join(str(exc).replace(str(path), "").split())
+        raise InvalidInputError(path, f"cannot read NIfTI data: {why}") from None
     data = _squeeze_to_3d(np.asarray(data), str(path))
     return data, LPS_FROM_RAS @ ras, header.copy()
+
+
+def _check_nifti_data_size(path: Path, header: Any, offset: int) -> None:
+    """Refuse data that the header declares past :data:`MAX_ARRAY_BYTES` (scaled to
+    float64 when a slope or intercept is set) or beyond the end of the file, before
+    nibabel allocates it (for a .nii.gz it allocates the declared size up front)."""
+    try:
+        shape = tuple(int(n) for n in header.get_data_shape())
+        itemsize = int(header.get_data_dtype().itemsize)
+        slope, inter = header.get_slope_inter()
+    except Exception as exc:  # noqa: BLE001 - nibabel raises many types on bad headers
+        raise InvalidInputError(path, f"cannot read NIfTI header: {exc}") from None
+    count = 1
+    for n in shape:
+        count *= n
+    stored = count * itemsize
+    scaled = count * 8 if (slope, inter) != (None, None) else stored
+    if max(stored, scaled) > MAX_ARRAY_BYTES:
+        raise ResourceLimitError(
+            path,
+            f"NIfTI declares {shape} voxels of {itemsize} bytes ({max(stored, scaled)} bytes "
+            f"in memory), over the limit of {MAX_ARRAY_BYTES} bytes",
+        )
+    if path.name.lower().endswith(".gz"):
+        with open(path, "rb") as fh:  # gzip's trailer: the unpacked size modulo 2**32
+            fh.seek(-4, os.SEEK_END)
+            available = int.from_bytes(fh.read(4), "little")
+        if offset + stored >= 2**32:
+            return  # cannot tell from the trailer; the limit above bounds it
+    else:
+        available = path.stat().st_size
+    if offset + stored > available:
+        raise InvalidInputError(
+            path,
+            f"NIfTI declares {stored} bytes of data at offset {offset} but the file holds "
+            f"{available} bytes (truncated, or a wrong dim/datatype in the header?)",
+        )
 
 
 def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -244,6 +306,8 @@ def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
         space = reader.GetMetaData("NRRD_space") if "NRRD_space" in keys else None
         size = reader.GetSize()
         ncomp = reader.GetNumberOfComponents()
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:  # SimpleITK raises RuntimeError with ITK's message
         raise InvalidInputError(path, f"cannot read NRRD: {str(exc).strip()}") from None
     if space not in _NRRD_SPACES:
@@ -260,6 +324,8 @@ def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
         img = reader.Execute()
         if img.GetDimension() > 3:
             img = img[:, :, :, 0]
+    except MemoryError:  # named as such by read_ct_volume
+        raise
     except Exception as exc:
         raise InvalidInputError(path, f"cannot read NRRD data: {str(exc).strip()}") from None
     D = np.asarray(img.GetDirection(), dtype=np.float64).reshape(3, 3)
@@ -429,12 +495,16 @@ def load_ct_surface(
     name = path.name.lower()
     if name.endswith(VOLUME_SUFFIXES):
         vol = read_ct_volume(path, kind)
-        return surface_from_volume(
-            vol.data, vol.T_world_from_voxel, vol.kind, iso_level, source=str(path)
-        )
+        with out_of_memory_names(path, "meshing this CT volume"):
+            return surface_from_volume(
+                vol.data, vol.T_world_from_voxel, vol.kind, iso_level, source=str(path)
+            )
     if name.endswith(MESH_SUFFIXES):
         try:
-            mesh = trimesh.load(str(path), force="mesh", process=False)
+            with out_of_memory_names(path, "reading this mesh"):
+                mesh = trimesh.load(str(path), force="mesh", process=False)
+        except InvalidInputError:
+            raise
         except Exception as exc:  # trimesh raises many types on corrupt files
             raise InvalidInputError(path, f"cannot read mesh: {exc}") from None
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:

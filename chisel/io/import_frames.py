@@ -384,6 +384,8 @@ def _header_meta(
         "calibration": calib.source,
         "raw_camera": raw.to_dict(),
         "pose_units_in_file": pose_cfg.units,
+        # False tells the sequence reader not to refuse positions that look like metres.
+        "pose_units_checked": pose_cfg.check_units,
         "pose_match": pose_cfg.match,
         "pose_interpolation": pose_cfg.interpolation if pose_cfg.match == "timestamp" else None,
         "field_stop_raw_px": None if circle is None else [circle.cx, circle.cy, circle.r],

@@ -25,13 +25,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from chisel.core.errors import InvalidInputError, PoseError
 from chisel.core.geometry import check_rigid
 from chisel.io.import_common import load_npy
-
-METRE_LIKE_MAX_TRANSLATION_MM = 1.0
-"""With units "mm", a trajectory whose every position lies within this distance of the
-tracker origin is taken to be in metres (trackers sit ~0.1-2 m from the patient)."""
-
-MM_LIKE_MIN_TRANSLATION_M = 10.0
-"""With units "m", a position farther than this from the tracker origin means mm."""
+from chisel.io.sequence import check_pose_units
 
 QUATERNION_NORM_TOL = 1e-2
 """Quaternions whose norm differs from 1 by more than this are refused, not normalised."""
@@ -229,20 +223,12 @@ def poses_world_from_cam(track: PoseTrack, cfg: PoseConfig) -> np.ndarray:
     P[:, :3, 3] *= scale
     check_rigid(P[valid], track.source)
     if cfg.check_units:
-        t_max = float(np.linalg.norm(track.poses[valid, :3, 3], axis=1).max())
-        if cfg.units == "mm" and t_max < METRE_LIKE_MAX_TRANSLATION_MM and valid.sum() > 1:
-            raise PoseError(
-                track.source,
-                f"every camera position is within {t_max:.4g} of the tracker origin: "
-                f"translations look like metres, but units are mm (pass --pose-units m, "
-                f"or check_units=False if this is right)",
-            )
-        if cfg.units == "m" and t_max > MM_LIKE_MIN_TRANSLATION_M:
-            raise PoseError(
-                track.source,
-                f"a camera position is {t_max:.4g} m from the tracker origin: translations "
-                f"look like millimetres, but units are m (pass --pose-units mm)",
-            )
+        fix = (
+            "pass --pose-units m, or check_units=False if this is right"
+            if cfg.units == "mm"
+            else "pass --pose-units mm"
+        )
+        check_pose_units(track.poses, cfg.units, track.source, "tracker", fix)
     H = np.eye(4) if cfg.T_marker_from_cam is None else cfg.T_marker_from_cam.copy()
     W = np.eye(4) if cfg.T_world_from_tracker is None else cfg.T_world_from_tracker.copy()
     H[:3, 3] *= scale

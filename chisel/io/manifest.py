@@ -50,6 +50,16 @@ def _depth(text: str) -> int:
     return deepest
 
 
+def json_type(value: object) -> str:
+    """JSON's name for ``value``'s type, for messages about a hand-edited file."""
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, int | float):
+        return "a number"
+    names: dict[type, str] = {dict: "an object", list: "an array", str: "a string"}
+    return names.get(type(value), "null")
+
+
 def read_json_manifest(
     path: str | Path, error: type[InvalidInputError] = InvalidInputError
 ) -> dict[str, Any]:
@@ -84,7 +94,7 @@ def read_json_manifest(
     except (ValueError, RecursionError) as exc:
         raise error(path, f"invalid JSON: {exc}") from None
     if not isinstance(data, dict):
-        raise error(path, f"expected a JSON object, got {type(data).__name__}")
+        raise error(path, f"expected a JSON object, got {json_type(data)}")
     return data
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from chisel.core.errors import InvalidInputError, ResourceLimitError
+from chisel.core.errors import InvalidInputError, ResourceLimitError, out_of_memory_names
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 """Mesh formats a manifest may name (read by trimesh)."""
@@ -36,7 +36,10 @@ def read_mesh_file(path: str | Path, what: str = "mesh") -> trimesh.Trimesh:
     if size > MAX_MESH_FILE_BYTES:
         raise ResourceLimitError(path, f"{what} file is {size} bytes, over {MAX_MESH_FILE_BYTES}")
     try:
-        mesh = trimesh.load(str(path), force="mesh", process=False)
+        with out_of_memory_names(path, f"reading this {what}"):
+            mesh = trimesh.load(str(path), force="mesh", process=False)
+    except InvalidInputError:  # the out-of-memory error, named
+        raise
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
         raise InvalidInputError(
             path, f"not a readable {what} (PLY/STL/OBJ expected): {type(exc).__name__}: {exc}"

@@ -26,7 +26,7 @@ from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -39,15 +39,12 @@ from chisel.core.errors import (
     InvalidInputError,
     PoseError,
     ResourceLimitError,
+    out_of_memory_names,
 )
 from chisel.core.geometry import Camera, check_rigid
 from chisel.io.images import PNG_MAGIC, decode_image
-from chisel.io.limits import (
-    MAX_IMAGE_SIDE_PX,
-    MAX_TEXT_BYTES,
-    check_npy_header,
-    read_text_limited,
-)
+from chisel.io.limits import MAX_IMAGE_SIDE_PX, check_npy_header, read_text_limited
+from chisel.io.manifest import json_type, read_json_manifest
 from chisel.io.undistort import check_lens_model
 
 SEQUENCE_FORMAT = "endoscopic-chisel/sequence"
@@ -57,6 +54,13 @@ MIN_PLAUSIBLE_MEDIAN_DEPTH_MM = 0.5
 """A valid depth map whose median is below this is taken to be in metres, not mm.
 
 Endoscopic working distances are 5-30 mm; in metres they read 0.005-0.03."""
+
+METRE_LIKE_MAX_TRANSLATION_MM = 1.0
+"""Poses in mm whose every position lies within this distance of the origin are taken to
+be in metres (a tracker sits ~0.1-2 m from the patient, a CT's origin ~0.1-0.3 m)."""
+
+MM_LIKE_MIN_TRANSLATION_M = 10.0
+"""Poses in metres with a position farther than this from the origin are taken to be mm."""
 
 
 @dataclass(frozen=True)
@@ -112,6 +116,34 @@ def check_depth_mm(depth_mm: np.ndarray, source: str) -> np.ndarray:
     return d
 
 
+def check_pose_units(
+    poses: np.ndarray, units: Literal["mm", "m"], source: str, origin: str, fix: str
+) -> None:
+    """Refuse poses whose translations contradict their declared ``units``.
+
+    poses : (N, 4, 4) float, units as declared; NaN/inf rows (lost tracking) are skipped.
+    ``origin`` names the frame of the positions ("tracker", "world"), ``fix`` the way out.
+    The one units check of poses: the importers and the sequence reader both call it.
+    """
+    valid = np.isfinite(poses).all(axis=(1, 2))
+    if not valid.any():
+        return
+    t_max = float(np.linalg.norm(poses[valid, :3, 3], axis=1).max())
+    # One pose near the origin is a plausible mm pose; a whole trajectory within 1 is not.
+    if units == "mm" and t_max < METRE_LIKE_MAX_TRANSLATION_MM and valid.sum() > 1:
+        raise PoseError(
+            source,
+            f"every camera position is within {t_max:.4g} of the {origin} origin: "
+            f"translations look like metres, but units are mm ({fix})",
+        )
+    if units == "m" and t_max > MM_LIKE_MIN_TRANSLATION_M:
+        raise PoseError(
+            source,
+            f"a camera position is {t_max:.4g} m from the {origin} origin: translations "
+            f"look like millimetres, but units are m ({fix})",
+        )
+
+
 def imwrite(path: str, img: np.ndarray) -> None:
     """``cv2.imwrite`` that fails loudly: OpenCV returns False (disk full, unwritable
     folder) instead of raising, which would leave a frame silently missing."""
@@ -139,12 +171,13 @@ def read_poses_txt(path: Path) -> np.ndarray:
     if not path.is_file():
         raise PoseError(path, "file is missing")
     text = read_text_limited(path, "pose file", PoseError)
-    try:
-        with warnings.catch_warnings():  # an empty file is refused below, by name
-            warnings.simplefilter("ignore", UserWarning)
-            arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2)
-    except ValueError as exc:
-        raise PoseError(path, f"cannot parse pose file: {exc}") from None
+    with out_of_memory_names(path, "reading this pose file"):
+        try:
+            with warnings.catch_warnings():  # an empty file is refused below, by name
+                warnings.simplefilter("ignore", UserWarning)
+                arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2)
+        except ValueError as exc:
+            raise PoseError(path, f"cannot parse pose file: {exc}") from None
     if arr.size == 0:
         raise PoseError(path, "pose file is empty")
     if arr.shape[1] != 16:
@@ -307,41 +340,9 @@ def write_sequence(
     return Path(path)
 
 
-def _json_type(value: object) -> str:
-    """JSON's name for ``value``'s type, for error messages about a hand-edited header."""
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, int | float):
-        return "a number"
-    names: dict[type, str] = {dict: "an object", list: "an array", str: "a string"}
-    return names.get(type(value), "null")
-
-
 def _is_int(value: object) -> bool:
     # bool is an int subclass: ``true`` is not a frame count or a pixel size.
     return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _read_header(path: Path) -> dict[str, Any]:
-    """``sequence.json`` as a dict; anything unreadable raises :class:`InvalidInputError`."""
-    try:
-        size = path.stat().st_size
-        if size > MAX_TEXT_BYTES:
-            raise ResourceLimitError(path, f"is {size} bytes, over the limit of {MAX_TEXT_BYTES}")
-        text = path.read_bytes().decode("utf-8")
-    except OSError as exc:
-        raise InvalidInputError(path, f"cannot read: {exc.strerror or exc}") from None
-    except UnicodeDecodeError as exc:
-        raise InvalidInputError(
-            path, f"not UTF-8 text (byte {exc.start}): is this really a sequence.json?"
-        ) from None
-    try:
-        header = json.loads(text)
-    except (ValueError, RecursionError) as exc:  # RecursionError: "[[[[..." nested too deep
-        raise InvalidInputError(path, f"invalid JSON: {str(exc)[:200]}") from None
-    if not isinstance(header, dict):
-        raise InvalidInputError(path, f"expected a JSON object, got {_json_type(header)}")
-    return header
 
 
 def _header_flag(header: dict[str, Any], key: str, source: Path) -> bool:
@@ -357,7 +358,7 @@ def _header_camera(value: object, source: Path) -> Camera:
     """The header's ``camera`` object as a :class:`Camera` that fits its own image size."""
     if not isinstance(value, dict):
         raise CameraError(
-            source, f"camera must be an object {{width, height, K, dist}}, got {_json_type(value)}"
+            source, f"camera must be an object {{width, height, K, dist}}, got {json_type(value)}"
         )
     for key in ("width", "height"):
         if key in value and not _is_int(value[key]):
@@ -393,7 +394,7 @@ class Sequence:
         header_path = self.path / "sequence.json"
         if not header_path.is_file():
             raise InvalidInputError(self.path, "not a sequence folder: sequence.json is missing")
-        header = _read_header(header_path)
+        header = read_json_manifest(header_path)
         if header.get("format") != SEQUENCE_FORMAT:
             raise FormatVersionError(
                 header_path, f"format is {header.get('format')!r}, expected {SEQUENCE_FORMAT!r}"
@@ -422,7 +423,7 @@ class Sequence:
             )
         meta = header.get("meta", {})
         if not isinstance(meta, dict):
-            raise InvalidInputError(header_path, f"meta must be an object, got {_json_type(meta)}")
+            raise InvalidInputError(header_path, f"meta must be an object, got {json_type(meta)}")
         num_frames = header["num_frames"]
         if not _is_int(num_frames) or num_frames < 1:
             raise InvalidInputError(
@@ -442,6 +443,11 @@ class Sequence:
                 self.path / "poses.txt",
                 f"{len(self.poses)} poses but sequence.json declares {self.num_frames} frames",
             )
+        # The importers' units check, here too (metres read as mm failed much later);
+        # skipped for a sequence imported with the check switched off on purpose.
+        if meta.get("pose_units_checked", True) is not False:
+            fix = "a sequence stores mm: multiply the translations by 1000"
+            check_pose_units(self.poses, "mm", str(self.path / "poses.txt"), "world", fix)
         self.true_poses: np.ndarray | None = None
         if _header_flag(header, "has_true_poses", header_path):
             true_path = self.path / "poses_true.txt"
@@ -504,16 +510,19 @@ class Sequence:
         path = self.path / "depth" / f"{i:06d}.npy"
         if not path.is_file():
             raise InvalidInputError(path, "file is missing")
-        try:
-            with open(path, "rb") as fh:
-                if fh.read(6) == b"\x93NUMPY":
-                    fh.seek(0)
-                    check_npy_header(fh, path, path.stat().st_size)
-            arr = np.load(path, allow_pickle=False)
-        except (ValueError, EOFError, OSError) as exc:  # EOFError: an empty file
-            raise InvalidInputError(
-                path, f"cannot read depth (.npy without pickle): {exc}"
-            ) from None
+        with out_of_memory_names(path, "reading this depth map"):
+            try:
+                with open(path, "rb") as fh:
+                    if fh.read(6) == b"\x93NUMPY":
+                        fh.seek(0)
+                        check_npy_header(fh, path, path.stat().st_size)
+                arr = np.load(path, allow_pickle=False)
+            except InvalidInputError:  # a ValueError, but it names the file already
+                raise
+            except (ValueError, EOFError, OSError) as exc:  # EOFError: an empty file
+                raise InvalidInputError(
+                    path, f"cannot read depth (.npy without pickle): {exc}"
+                ) from None
         if not isinstance(arr, np.ndarray):  # np.load opens an .npz archive as well
             arr.close()
             raise InvalidInputError(path, "depth must be a single .npy array, not an .npz archive")
