@@ -35,19 +35,18 @@ import numpy as np
 
 from chisel.core.atomic import atomic_savez
 from chisel.core.errors import FormatVersionError, InvalidInputError, out_of_memory_names
-from chisel.io.limits import check_npz_members
+from chisel.io.limits import (
+    MAX_PLACEMENT_MM,
+    MAX_VOXEL_SIZE_MM,
+    MIN_VOXEL_SIZE_MM,
+    check_npz_members,
+)
 
 MODEL_FORMAT = "endoscopic-chisel/model"
 MODEL_VERSION = 1
 
-MIN_VOXEL_SIZE_MM = 1e-3
-"""Smallest voxel edge, mm (1 um; CT and endoscopic depth resolve ~0.1 mm)."""
-MAX_VOXEL_SIZE_MM = 1e3
-"""Largest voxel edge, mm."""
 MAX_TRUNC_MM = 1e4
 """Largest truncation distance, mm."""
-MAX_PLACEMENT_MM = 1e6
-"""Farthest a grid corner may lie from the world origin, mm (1 km: any scanner frame)."""
 BUILDS: tuple[str, ...] = ("ct", "sweep")
 """The preoperative builds a model file can record (field ``build``)."""
 

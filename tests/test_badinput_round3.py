@@ -260,6 +260,40 @@ def test_nifti_headers_that_crashed_or_allocated_are_refused(tmp_path: Path) -> 
         assert peak < 64 * 2**20, (fields, peak)
 
 
+def test_nifti_placed_a_universe_away_or_with_nanometre_voxels_is_refused(tmp_path: Path) -> None:
+    # The model's own bounds on placement and voxel size (chisel.io.limits) hold for a CT's
+    # affine too: 3e38 mm, or 1e-6 mm voxels, meshed into an unusable surface, exit 0.
+    import nibabel as nib
+
+    from chisel.io.ct import read_ct_volume
+
+    data = np.zeros((4, 5, 6), np.int16)
+    data[1:3, 1:4, 2:5] = 1
+    path = tmp_path / "ct.nii"
+
+    def write(affine: np.ndarray) -> None:  # nibabel: our writer refuses these affines too
+        img = nib.Nifti1Image(data, affine)
+        img.set_sform(affine, code=1)
+        nib.save(img, str(path))
+
+    for affine, message in (
+        (
+            np.array([[0.5, 0, 0, 3e38], [0, 0.5, 0, 0], [0, 0, 0.5, 0], [0, 0, 0, 1]]),
+            "farther than",
+        ),
+        (np.diag([1e-6, 0.5, 0.5, 1.0]), "voxel spacing"),
+        (np.diag([5e3, 0.5, 0.5, 1.0]), "voxel spacing"),
+    ):
+        write(affine)
+        with pytest.raises(InvalidInputError, match=message) as info:
+            read_ct_volume(path)
+        assert info.value.source == str(path)
+    # A usual scanner frame (origin 200 mm away, 0.5 mm voxels) is read.
+    ok = np.array([[-0.5, 0, 0, 120.0], [0, -0.5, 0, 140.0], [0, 0, 0.5, -200.0], [0, 0, 0, 1]])
+    write(ok)
+    assert read_ct_volume(path).data.shape == (4, 5, 6)
+
+
 # ------------------------------------------------------- f: a fresh hostile pass (found)
 
 

@@ -52,7 +52,12 @@ from chisel.core.errors import (
     out_of_memory_names,
 )
 from chisel.core.geometry import transform_points
-from chisel.io.limits import MAX_ARRAY_BYTES
+from chisel.io.limits import (
+    MAX_ARRAY_BYTES,
+    MAX_PLACEMENT_MM,
+    MAX_VOXEL_SIZE_MM,
+    MIN_VOXEL_SIZE_MM,
+)
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".glb")
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
@@ -119,7 +124,8 @@ class CtVolume:
 def check_voxel_affine(T: np.ndarray, source: str | Path) -> np.ndarray:
     """Return ``T`` as a (4, 4) float64 voxel -> world affine, or raise naming ``source``.
 
-    Refused: not 4x4, NaN/inf, a bottom row other than [0, 0, 0, 1], singular, sheared
+    Refused: not 4x4, NaN/inf, a bottom row other than [0, 0, 0, 1], singular, a voxel
+    spacing or an origin beyond the grids' bounds (:mod:`chisel.io.limits`), sheared
     (voxel axes not orthogonal within :data:`SHEAR_TOLERANCE`). Rotations (oblique),
     flips and a negative determinant are fine.
     """
@@ -134,6 +140,18 @@ def check_voxel_affine(T: np.ndarray, source: str | Path) -> np.ndarray:
     norms = np.linalg.norm(M, axis=0)
     if norms.min() < 1e-9 or abs(np.linalg.det(M)) < 1e-12 * norms.prod():
         raise InvalidInputError(source, f"affine is singular (voxel size 0): {M.tolist()}")
+    if norms.min() < MIN_VOXEL_SIZE_MM or norms.max() > MAX_VOXEL_SIZE_MM:
+        raise InvalidInputError(
+            source,
+            f"voxel spacing {norms.tolist()} mm is outside [{MIN_VOXEL_SIZE_MM:g}, "
+            f"{MAX_VOXEL_SIZE_MM:g}] mm: not a CT's (metres or a unit error?)",
+        )
+    if np.abs(A[:3, 3]).max() > MAX_PLACEMENT_MM:
+        raise InvalidInputError(
+            source,
+            f"affine places the volume's origin at {A[:3, 3].tolist()} mm, farther than "
+            f"{MAX_PLACEMENT_MM:g} mm from the world origin: not a patient's CT frame",
+        )
     cos = (M.T @ M) / np.outer(norms, norms)
     worst = float(np.abs(cos - np.eye(3)).max())
     if worst > SHEAR_TOLERANCE:

@@ -29,6 +29,14 @@ MAX_IMAGE_SIDE_PX = 16384
 MAX_TEXT_BYTES = 256 * 2**20
 """Largest text file (pose file, CSV) read whole."""
 
+MIN_VOXEL_SIZE_MM = 1e-3
+"""Smallest voxel edge of a grid (model or CT), mm (1 um; CT and endoscopic depth resolve
+~0.1 mm)."""
+MAX_VOXEL_SIZE_MM = 1e3
+"""Largest voxel edge of a grid, mm."""
+MAX_PLACEMENT_MM = 1e6
+"""Farthest a grid corner may lie from the world origin, mm (1 km: any scanner frame)."""
+
 
 def _declared_nbytes(fh: IO[bytes], source: str | Path) -> tuple[int, tuple[int, ...], np.dtype]:
     try:
