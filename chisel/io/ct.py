@@ -58,6 +58,7 @@ from chisel.io.limits import (
     MAX_VOXEL_SIZE_MM,
     MIN_VOXEL_SIZE_MM,
 )
+from chisel.io.meshfile import read_mesh_file
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".glb")
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
@@ -518,18 +519,7 @@ def load_ct_surface(
                 vol.data, vol.T_world_from_voxel, vol.kind, iso_level, source=str(path)
             )
     if name.endswith(MESH_SUFFIXES):
-        try:
-            with out_of_memory_names(path, "reading this mesh"):
-                mesh = trimesh.load(str(path), force="mesh", process=False)
-        except InvalidInputError:
-            raise
-        except Exception as exc:  # trimesh raises many types on corrupt files
-            raise InvalidInputError(path, f"cannot read mesh: {exc}") from None
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise InvalidInputError(path, "mesh has no triangle")
-        if not np.all(np.isfinite(mesh.vertices)):
-            raise InvalidInputError(path, "mesh vertices contain NaN/inf")
-        return mesh
+        return read_mesh_file(path, "CT segmentation mesh", MESH_SUFFIXES)
     raise InvalidInputError(
         path, f"unknown CT segmentation type; expected one of {MESH_SUFFIXES + VOLUME_SUFFIXES}"
     )
