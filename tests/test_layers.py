@@ -22,7 +22,6 @@ MAX_FUNCTION_LINES = 120
 # module or function that gets under its goal must leave them (the test then says so).
 OVERSIZED_MODULES = {
     "chisel/updater.py",
-    "sim/config.py",
 }
 LONG_FUNCTIONS = {
     "chisel/cli/cmd_depth.py:register",
