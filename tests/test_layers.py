@@ -26,7 +26,6 @@ OVERSIZED_MODULES = {
 LONG_FUNCTIONS = {
     "chisel/cli/cmd_depth.py:register",
     "chisel/cli/cmd_model.py:register",
-    "phantoms/generate.py:build_phantom",
 }
 
 
