@@ -4,10 +4,11 @@ Construction (all lengths in mm, world frame of ``docs/phantoms.md``: +x lateral
 posterior, +z superior; the septum's midline face lies near x = 0, the nostril at y = 0,
 the nasal floor at z = 0):
 
-1. The **airway** is an implicit field (positive in air): the space between septum and
-   lateral wall, floor and roof, with the three turbinates carved out by smooth
-   subtraction and a smooth low-frequency undulation of the walls. It is sampled on a
-   grid and meshed with marching cubes (scikit-image), then made a manifold.
+1. The **airway** is an implicit field (positive in air; :class:`phantoms.airway.AirwayField`):
+   the space between septum and lateral wall, floor and roof, with the three turbinates
+   carved out by smooth subtraction and a smooth low-frequency undulation of the walls.
+   It is sampled on a grid and meshed with marching cubes (scikit-image), then made a
+   manifold.
 2. Every **air cell** (infundibulum behind the uncinate process, ethmoid bulla, posterior
    ethmoid cell behind the basal lamella, further ethmoid cells, maxillary sinus with its
    ostium) is a void ``V`` with a wall ``W``: ``V`` dilated by the wall thickness. The
@@ -31,6 +32,7 @@ import numpy as np
 from skimage.measure import marching_cubes
 
 from chisel.core.geometry import vec3
+from phantoms.airway import AirwayField
 from phantoms.errors import AnatomyError, NotManifoldError
 
 #: target lamella -> the air cell whose airway-facing wall it is.
@@ -84,155 +86,6 @@ class Anatomy:
             if c.name == name:
                 return c
         raise KeyError(name)
-
-
-# --------------------------------------------------------------------------- fields
-
-
-def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
-    t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
-
-
-def _smin(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
-    """Smooth minimum (polynomial, blend radius ``k`` mm): smooth intersection of fields."""
-    h = np.maximum(k - np.abs(a - b), 0.0) / k
-    return np.minimum(a, b) - h * h * k * 0.25
-
-
-def _ellipsoid(px, py, pz, center, axes) -> np.ndarray:
-    """Approximate signed distance, positive inside an ellipsoid (Quilez' bound), mm."""
-    x = (px - center[0]) / axes[0]
-    y = (py - center[1]) / axes[1]
-    z = (pz - center[2]) / axes[2]
-    k0 = np.sqrt(x * x + y * y + z * z)
-    k1 = np.sqrt((x / axes[0]) ** 2 + (y / axes[1]) ** 2 + (z / axes[2]) ** 2)
-    return -k0 * (k0 - 1.0) / np.maximum(k1, 1e-9)
-
-
-class AirwayField:
-    """The airway as an implicit field ``f(x, y, z)`` in mm, positive in air.
-
-    The zero level set is the airway wall; ``|grad f|`` is close to 1 near it, so ``f``
-    approximates the signed distance to the wall.
-    """
-
-    def __init__(self, p: dict[str, float], seed: int) -> None:
-        self.p = p
-        L, H = p["airway_length_mm"], p["airway_height_mm"]
-        self.L, self.H = L, H
-        self.dev_max = max(p["septum_deviation_mm"], 0.0)
-        # inferior turbinate: medial face at the common meatus, lateral face at the meatus
-        it_med = self.dev_max + p["it_septum_gap_mm"]
-        it_lat = p["floor_width_mm"] - p["inferior_meatus_mm"]
-        it_ax = max((it_lat - it_med) / 2.0, 1.5)
-        self.it_center = (
-            it_med + it_ax,
-            p["it_start_mm"] + p["it_length_mm"] / 2,
-            p["it_center_z_mm"],
-        )
-        self.it_axes = (it_ax, p["it_length_mm"] / 2, p["it_height_mm"] / 2)
-        # attachment of the inferior turbinate to the lateral wall, above its meatus
-        att_x0 = self.it_center[0]
-        att_x1 = p["floor_width_mm"] + 1.5
-        self.it_att_center = (
-            (att_x0 + att_x1) / 2,
-            self.it_center[1],
-            p["it_center_z_mm"] + 0.3 * p["it_height_mm"],
-        )
-        self.it_att_axes = (
-            (att_x1 - att_x0) / 2 + 0.5,
-            0.42 * p["it_length_mm"],
-            0.28 * p["it_height_mm"],
-        )
-        self.it_top = p["it_center_z_mm"] + p["it_height_mm"] / 2
-        # middle turbinate: a hanging plate with a root up to the roof
-        mt_x = self.dev_max + p["mt_septum_gap_mm"] + p["mt_thickness_mm"] / 2
-        mt_y0 = p["mt_start_frac"] * L
-        mt_z0 = p["mt_bottom_frac"] * H
-        self.mt_start = mt_y0
-        self.mt_center = (mt_x, mt_y0 + p["mt_length_mm"] / 2, mt_z0 + p["mt_height_mm"] / 2)
-        self.mt_axes = (p["mt_thickness_mm"] / 2, p["mt_length_mm"] / 2, p["mt_height_mm"] / 2)
-        root_z = (self.mt_center[2] + H + 4.0) / 2
-        self.mt_root_center = (mt_x, self.mt_center[1] + 2.0, root_z)
-        self.mt_root_axes = (0.4 * p["mt_thickness_mm"], 0.42 * p["mt_length_mm"], H + 4.0 - root_z)
-        # lateral wall: floor width below the inferior turbinate's top, the middle meatus
-        # above it, tapering to the olfactory cleft under the roof
-        self.x_mid = mt_x + p["mt_thickness_mm"] / 2 + p["middle_meatus_mm"]
-        self.x_low = p["floor_width_mm"]
-        # superior turbinate: small, high and posterior on the lateral wall
-        st_z = 0.8 * H
-        st_y0 = 0.6 * L
-        self.st_center = (
-            self.lateral_x(np.array(st_y0 + 10.0), np.array(st_z)).item() - 0.6,
-            st_y0 + p["st_length_mm"] / 2,
-            st_z,
-        )
-        self.st_axes = (2.0, p["st_length_mm"] / 2, 2.4)
-        # smooth undulation of the walls: three plane waves, 12-25 mm wavelength
-        rng = np.random.default_rng([int(seed), 0xA1])
-        dirs = rng.normal(size=(3, 3))
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        wavelengths = rng.uniform(12.0, 25.0, size=3)
-        self.wave_k = dirs * (2.0 * math.pi / wavelengths)[:, None]
-        self.wave_phase = rng.uniform(0.0, 2.0 * math.pi, size=3)
-
-    # -- profiles ----------------------------------------------------------------
-    def septum_x(self, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        p = self.p
-        yd = p["septum_deviation_y_frac"] * self.L
-        zd = p["septum_deviation_z_frac"] * self.H
-        return p["septum_deviation_mm"] * np.exp(
-            -(((y - yd) / (0.2 * self.L)) ** 2) - ((z - zd) / (0.18 * self.H)) ** 2
-        )
-
-    def roof_z(self, y: np.ndarray) -> np.ndarray:
-        L, H = self.L, self.H
-        vh = self.p["vestibule_height_mm"]
-        rise = _smoothstep(0.0, 0.3 * L, y)
-        fall = _smoothstep(0.7 * L, L, y)
-        return vh + (H - vh) * rise - 0.3 * H * fall
-
-    def lateral_x(self, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        base = self.x_low + (self.x_mid - self.x_low) * _smoothstep(
-            self.it_top - 1.0, self.it_top + 3.0, z
-        )
-        zr = self.roof_z(y)
-        z2 = 0.72 * zr
-        u = np.clip((z - z2) / np.maximum(zr - z2, 1e-6), 0.0, 1.0)
-        x = base + (self.p["roof_width_mm"] - base) * u**1.3
-        return x * (0.85 + 0.15 * _smoothstep(0.0, 15.0, y))
-
-    # -- the field ---------------------------------------------------------------
-    def __call__(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        k = 1.5
-        f = x - self.septum_x(y, z)
-        f = _smin(f, self.lateral_x(y, z) - x, k)
-        floor = 2.0 * (1.0 - _smoothstep(0.0, 10.0, y))  # nostril sill
-        f = _smin(f, z - floor, 2.0)
-        f = _smin(f, self.roof_z(y) - z, k)
-        f = _smin(f, self.L - y, 3.0)
-        wave = np.zeros_like(f)
-        for kv, ph in zip(self.wave_k, self.wave_phase, strict=True):
-            wave += np.sin(kv[0] * x + kv[1] * y + kv[2] * z + ph)
-        f = f + self.p["wobble_mm"] * wave / 3.0
-        # turbinates are tissue: smooth subtraction
-        for center, axes in (
-            (self.it_center, self.it_axes),
-            (self.it_att_center, self.it_att_axes),
-            (self.mt_center, self.mt_axes),
-            (self.mt_root_center, self.mt_root_axes),
-            (self.st_center, self.st_axes),
-        ):
-            f = _smin(f, -_ellipsoid(x, y, z, center, axes), k)
-        return f
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Axis-aligned box that contains the airway's part inside the block, mm."""
-        lo = np.array([-1.5 - 1.0, -3.0, -1.0])
-        hi = np.array([max(self.x_low, self.x_mid) + 2.0, self.L + 1.0, self.H + 1.0])
-        lo[0] = min(lo[0], -abs(self.p["septum_deviation_mm"]) - 2.0)
-        return lo, hi
 
 
 # ------------------------------------------------------------------------- meshing
@@ -350,49 +203,96 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
         If the air cells cannot be placed without touching each other.
     """
     air = AirwayField(p, seed)
-    L, H = air.L, air.H
-    rng = np.random.default_rng([int(seed), 0xCE11])
+    targets = _target_cells(air, p)
+    m_center, m_axes = _maxillary_sinus(air, p, targets)
+    cells = [*targets, *_ethmoid_cells(air, p, seed, targets, m_center, m_axes)]
+    tissue, maxillary_volume, b_lo, b_hi, air_lo, air_hi = _tissue_solid(
+        air, p, cells, m_center, m_axes, edge_mm
+    )
+    # closed voids = shells beyond the outer one; the infundibulum, ostium and maxillary
+    # sinus form one void
+    expected_voids = len(cells)  # (cells - infundibulum) + the infundibulum-maxillary void
+    n_shells = _count_shells(tissue)
+    if n_shells - 1 != expected_voids:
+        raise AnatomyError(
+            "anatomy",
+            f"expected {expected_voids} closed air voids, got {n_shells - 1}; air cells touch each other or the airway",
+        )
+    return Anatomy(
+        tissue=tissue,
+        cells=tuple(cells),
+        maxillary_center_mm=vec3(m_center),
+        maxillary_semi_axes_mm=vec3(m_axes),
+        maxillary_volume_mm3=float(maxillary_volume),
+        block_min_mm=vec3(b_lo),
+        block_max_mm=vec3(b_hi),
+        nostril_mm=_nostril(air, p),
+        airway_min_mm=vec3(np.maximum(air_lo, b_lo)),
+        airway_max_mm=vec3(np.minimum(air_hi, b_hi)),
+        n_voids=expected_voids,
+    )
 
-    def wall_x(y: float, z: float) -> float:
-        return float(air.lateral_x(np.array(y), np.array(z)))
 
-    # --- target cells -------------------------------------------------------------
+def _wall_x(air: AirwayField, y: float, z: float) -> float:
+    """x of the airway's lateral wall at (y, z), mm."""
+    return float(air.lateral_x(np.array(y), np.array(z)))
+
+
+def _target_cells(
+    air: AirwayField, p: dict[str, float]
+) -> tuple[SphereCell, SphereCell, SphereCell]:
+    """The infundibulum (behind the uncinate), the ethmoid bulla and the posterior ethmoid
+    cell (behind the basal lamella), front to back along the lateral wall; each next cell
+    starts where it clears the previous one's wall by 0.6 mm."""
+    H = air.H
     t_u, R_u = p["uncinate_thickness_mm"], p["uncinate_radius_mm"]
     y_u = air.mt_start + p["uncinate_y_offset_mm"]
     z_u = p["uncinate_z_frac"] * H
-    c_u = np.array([wall_x(y_u, z_u) - p["uncinate_bulge_mm"] + R_u + t_u, y_u, z_u])
+    c_u = np.array([_wall_x(air, y_u, z_u) - p["uncinate_bulge_mm"] + R_u + t_u, y_u, z_u])
     infundibulum = SphereCell("infundibulum", tuple(c_u), R_u, t_u)
 
     r_b, t_b = p["bulla_radius_mm"], p["bulla_wall_mm"]
     z_b = p["bulla_z_frac"] * H
-    x_b = wall_x(y_u + 8.0, z_b) - p["bulla_bulge_mm"] + r_b + t_b
+    x_b = _wall_x(air, y_u + 8.0, z_b) - p["bulla_bulge_mm"] + r_b + t_b
     sep = max(t_u, t_b) + 0.6
     need = R_u + r_b + sep
     dxz2 = (x_b - c_u[0]) ** 2 + (z_b - c_u[2]) ** 2
     y_b = y_u + math.sqrt(max(need**2 - dxz2, 0.0)) + 0.2
-    c_b = np.array([wall_x(y_b, z_b) - p["bulla_bulge_mm"] + r_b + t_b, y_b, z_b])
+    c_b = np.array([_wall_x(air, y_b, z_b) - p["bulla_bulge_mm"] + r_b + t_b, y_b, z_b])
     bulla = SphereCell("ethmoid_bulla", tuple(c_b), r_b, t_b)
 
     R_p, t_p = p["posterior_ethmoid_radius_mm"], p["basal_lamella_mm"]
     z_p = z_b
-    x_p = wall_x(y_b + 8.0, z_p) - p["basal_bulge_mm"] + R_p + t_p
+    x_p = _wall_x(air, y_b + 8.0, z_p) - p["basal_bulge_mm"] + R_p + t_p
     sep = max(t_b, t_p) + 0.6
     need = r_b + R_p + sep
     y_p = y_b + math.sqrt(max(need**2 - (x_p - c_b[0]) ** 2, 0.0)) + 0.2
-    c_p = np.array([wall_x(y_p, z_p) - p["basal_bulge_mm"] + R_p + t_p, y_p, z_p])
+    c_p = np.array([_wall_x(air, y_p, z_p) - p["basal_bulge_mm"] + R_p + t_p, y_p, z_p])
     post = SphereCell("posterior_ethmoid", tuple(c_p), R_p, t_p)
-    cells: list[SphereCell] = [infundibulum, bulla, post]
+    return infundibulum, bulla, post
 
-    # --- maxillary sinus: below the ethmoid cells, lateral to the airway -------------
+
+def _maxillary_sinus(
+    air: AirwayField, p: dict[str, float], targets: tuple[SphereCell, SphereCell, SphereCell]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and semi-axes (mm) of the maxillary sinus: an ellipsoid below the ethmoid
+    cells, lateral to the airway, pushed down and laterally until it clears them; its
+    ostium (a cylinder from the infundibulum's centre to the sinus's) must clear the
+    bulla and the posterior ethmoid cell by 0.5 mm."""
+    infundibulum, bulla, post = targets
+    c_u = np.asarray(infundibulum.center_mm)
+    R_u, t_u = infundibulum.radius_mm, infundibulum.wall_mm
     wob = p["wobble_mm"]
-    z_top = z_u + 0.15 * R_u
+    z_top = c_u[2] + 0.15 * R_u
     z_bot = -4.0
     az = (z_top - z_bot) / 2.0
     axy = p["maxillary_volume_mm3"] / (4.0 / 3.0 * math.pi * az)
     ax = math.sqrt(axy / 1.45)
     ay = 1.45 * ax
     x_wall = max(air.x_low, air.x_mid)
-    m_center = np.array([x_wall + wob + p["maxillary_wall_mm"] + ax, y_u + 0.35 * ay, z_bot + az])
+    m_center = np.array(
+        [x_wall + wob + p["maxillary_wall_mm"] + ax, c_u[1] + 0.35 * ay, z_bot + az]
+    )
     m_axes = np.array([ax, ay, az])
     r_o = p["ostium_radius_mm"]
     # push the sinus down/laterally until it clears the ethmoid cells by their wall + 0.6 mm
@@ -410,8 +310,6 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
         raise AnatomyError(
             "anatomy", "maxillary sinus cannot clear the ethmoid bulla; choose other parameters"
         )
-    # the ostium (a cylinder from the infundibulum's centre to the sinus's centre) must
-    # clear the other cells
     for cell in (bulla, post):
         gap = (
             _segment_distance(np.asarray(cell.center_mm), c_u, m_center)
@@ -424,19 +322,37 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
                 "anatomy",
                 f"maxillary ostium passes {gap:.2f} mm from the {cell.name} (expected >= 0.5 mm); choose other parameters",
             )
+    return m_center, m_axes
 
-    # --- further ethmoid cells, rejection-sampled above the maxillary sinus --------
+
+def _ethmoid_cells(
+    air: AirwayField,
+    p: dict[str, float],
+    seed: int,
+    targets: tuple[SphereCell, SphereCell, SphereCell],
+    m_center: np.ndarray,
+    m_axes: np.ndarray,
+) -> list[SphereCell]:
+    """The further ethmoid cells, rejection-sampled above the maxillary sinus: each clears
+    every cell placed before it, the sinus and the ostium by the thicker wall + 0.6 mm."""
+    H = air.H
+    infundibulum, _, post = targets
+    c_u = np.asarray(infundibulum.center_mm)
+    t_u = infundibulum.wall_mm
+    r_o = p["ostium_radius_mm"]
+    rng = np.random.default_rng([int(seed), 0xCE11])
     wall_e = p["ethmoid_cell_wall_mm"]
     n_eth = int(p["ethmoid_cells"])
+    cells: list[SphereCell] = list(targets)
     placed = 0
     for attempt in range(1500):
         if placed == n_eth:
             break
         # smaller cells once the roomy spots are taken
         r = float(rng.uniform(2.5, 4.5) if attempt < 500 else rng.uniform(2.0, 3.0))
-        y = float(rng.uniform(y_u - 4.0, c_p[1] + R_p + 4.0))
+        y = float(rng.uniform(c_u[1] - 4.0, post.center_mm[1] + post.radius_mm + 4.0))
         z = float(rng.uniform(0.6 * H, 0.92 * H))
-        x = wall_x(y, z) + float(rng.uniform(1.0, 12.0)) + r
+        x = _wall_x(air, y, z) + float(rng.uniform(1.0, 12.0)) + r
         c = np.array([x, y, z])
         ok = z + r + wall_e < H + 2.0
         for other in cells:
@@ -451,8 +367,21 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
         raise AnatomyError(
             "ethmoid_cells", f"could place only {placed} of {n_eth} ethmoid cells; choose fewer"
         )
+    return cells[len(targets) :]
 
-    # --- manifolds ---------------------------------------------------------------
+
+def _tissue_solid(
+    air: AirwayField,
+    p: dict[str, float],
+    cells: list[SphereCell],
+    m_center: np.ndarray,
+    m_axes: np.ndarray,
+    edge_mm: float,
+) -> tuple[m3d.Manifold, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``block - (airway - walls) - voids`` as a manifold.
+
+    Returns the tissue, the maxillary void's volume (mm^3), the block's corners and the
+    airway's bounding box after the walls are taken out of it (mm)."""
     lo, hi = air.bounds()
     # an odd grid offset keeps marching-cubes vertices off the CT grid's lattice
     airway = mesh_field(air, lo + 0.0731, hi, airway_grid_mm(edge_mm, p))
@@ -467,6 +396,9 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
     m_wall = m_wall.translate(tuple(m_center))
     maxillary_volume = maxillary.volume()
 
+    infundibulum = cells[0]
+    c_u = np.asarray(infundibulum.center_mm)
+    r_o, t_u = p["ostium_radius_mm"], infundibulum.wall_mm
     axis = m_center - c_u
     length = float(np.linalg.norm(axis))
     ostium = _cylinder(c_u, axis / length, length, r_o, edge_mm)
@@ -478,6 +410,20 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
     box = airway.bounding_box()
     air_lo, air_hi = np.asarray(box[:3]), np.asarray(box[3:])
 
+    b_lo, b_hi = _block_box(cells, m_center, m_axes, air.L, air.H)
+    block = m3d.Manifold.cube(tuple(b_hi - b_lo)).translate(tuple(b_lo))
+    tissue = block - airway - m3d.Manifold.batch_boolean(voids, m3d.OpType.Add)
+    if tissue.status() != m3d.Error.NoError or tissue.is_empty():  # pragma: no cover
+        raise AnatomyError("anatomy", f"tissue boolean failed: {tissue.status().name}")
+    return tissue, maxillary_volume, b_lo, b_hi, air_lo, air_hi
+
+
+def _block_box(
+    cells: list[SphereCell], m_center: np.ndarray, m_axes: np.ndarray, L: float, H: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Corners of the tissue block, mm (rounded to 0.1 mm): 3 mm around every wall and the
+    sinus, the airway's length and height + 4 mm; its medial face is the septum's midline
+    and its anterior face the nostril's plane (y = 0)."""
     extents_lo = [np.asarray(c.center_mm) - c.outer_radius_mm for c in cells] + [
         m_center - m_axes - 2.0
     ]
@@ -487,39 +433,18 @@ def build_anatomy(p: dict[str, float], seed: int, edge_mm: float = 0.5) -> Anato
     b_lo = np.minimum(np.min(extents_lo, axis=0) - 3.0, [_SEPTUM_FACE_X, 0.0, -4.0])
     b_hi = np.maximum(np.max(extents_hi, axis=0) + 3.0, [0.0, L + 4.0, H + 4.0])
     b_lo[0], b_lo[1] = _SEPTUM_FACE_X, 0.0
-    b_lo, b_hi = np.round(b_lo, 1), np.round(b_hi, 1)
-    block = m3d.Manifold.cube(tuple(b_hi - b_lo)).translate(tuple(b_lo))
-    tissue = block - airway - m3d.Manifold.batch_boolean(voids, m3d.OpType.Add)
-    if tissue.status() != m3d.Error.NoError or tissue.is_empty():  # pragma: no cover
-        raise AnatomyError("anatomy", f"tissue boolean failed: {tissue.status().name}")
+    return np.round(b_lo, 1), np.round(b_hi, 1)
 
-    # closed voids = shells beyond the outer one; the infundibulum, ostium and maxillary
-    # sinus form one void
-    expected_voids = len(cells)  # (cells - infundibulum) + the infundibulum-maxillary void
-    n_shells = _count_shells(tissue)
-    if n_shells - 1 != expected_voids:
-        raise AnatomyError(
-            "anatomy",
-            f"expected {expected_voids} closed air voids, got {n_shells - 1}; air cells touch each other or the airway",
-        )
+
+def _nostril(air: AirwayField, p: dict[str, float]) -> tuple[float, float, float]:
+    """Centre of the nostril on the block's anterior face (y = 0): midway between septum
+    and lateral wall, midway between the sill and the vestibule's roof, mm."""
     z_nostril = 0.5 * (2.0 + p["vestibule_height_mm"])
     x_nostril = 0.5 * float(
         air.septum_x(np.array(0.0), np.array(z_nostril))
         + air.lateral_x(np.array(0.0), np.array(z_nostril))
     )
-    return Anatomy(
-        tissue=tissue,
-        cells=tuple(cells),
-        maxillary_center_mm=vec3(m_center),
-        maxillary_semi_axes_mm=vec3(m_axes),
-        maxillary_volume_mm3=float(maxillary_volume),
-        block_min_mm=vec3(b_lo),
-        block_max_mm=vec3(b_hi),
-        nostril_mm=(x_nostril, 0.0, z_nostril),
-        airway_min_mm=vec3(np.maximum(air_lo, b_lo)),
-        airway_max_mm=vec3(np.minimum(air_hi, b_hi)),
-        n_voids=expected_voids,
-    )
+    return (x_nostril, 0.0, z_nostril)
 
 
 def _cylinder(

@@ -8,12 +8,12 @@ line naming the argument and exit with status 1.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 from typing import cast
 
+from chisel.io.manifest import read_json_value
 from phantoms.errors import ParameterRangeError, PhantomError
 
 _DESCRIPTION = """\
@@ -191,10 +191,7 @@ def _load_bite(b, where: str):
 
 def _load_plan(path: Path):
     """Plan entries: a bite object, or {"bites": [...]} / a list of bites (one fragment)."""
-    try:
-        raw = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ParameterRangeError(path, f"cannot read the bite plan: {exc}") from None
+    raw = read_json_value(path, ParameterRangeError)
     if not isinstance(raw, list) or not raw:
         raise ParameterRangeError(path, "expected a non-empty JSON list of bites")
     steps = []

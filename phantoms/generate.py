@@ -48,7 +48,13 @@ from phantoms.io import (
 )
 from phantoms.params import PARAM_RANGES, PhantomConfig, sample_params
 from phantoms.path import airway_path
-from phantoms.procedures import Fragment, cut_steps, plan_allowed_region, plan_procedure
+from phantoms.procedures import (
+    Fragment,
+    StepCut,
+    cut_steps,
+    plan_allowed_region,
+    plan_procedure,
+)
 from phantoms.roi import change_box
 
 log = logging.getLogger(__name__)
@@ -140,97 +146,16 @@ def build_phantom(
     ProcedureError, UnknownTargetError, AnatomyError, ParameterRangeError
     """
     note = progress or (lambda _msg: None)
-    bites_given = bites
     params = sample_params(config.seed, config.overrides)
     anatomy = build_anatomy(params, config.seed, config.mesh_edge_mm)
     note("anatomy")
-    if bites is None:
-        target, fragments, results = plan_procedure(
-            anatomy,
-            config.procedure,
-            config.n_bites,
-            config.seed,
-            config.target,
-            config.bite_size_mm,
-        )
-    else:
-        target, _, _ = find_target(anatomy, config.target)
-        fragments = [_plan_fragment(b, config.target) for b in bites]
-        results = cut_steps(
-            anatomy,
-            fragments,
-            config.procedure,
-            allowed=plan_allowed_region(anatomy, config.procedure, config.target),
-            where=f"{plan_source} {{i}}",
-            edge_mm=min(config.mesh_edge_mm, 0.3),
-        )
-    bites = [f.bites[0] for f in fragments if f.bites]
+    target, fragments, results = _cut_plan(anatomy, config, bites, plan_source)
     note("bites")
-
-    clip = clip_distance_mm(config.spacing_mm, config.mucosa_mm)
-    grid = grid_for_block(
-        anatomy.block_min_mm,
-        anatomy.block_max_mm,
-        config.spacing_mm,
-        clip[0] + 2 * config.spacing_mm,
+    # an explicit plan is a list of bites, whatever the procedure
+    step_name = "bite" if config.procedure == "bites" or bites is not None else "fragment"
+    grid, steps, path = _voxelise_steps(
+        config, anatomy, target, fragments, results, step_name, note
     )
-    noise = ct_noise(grid.shape, config.noise_hu, config.seed)
-
-    step_name = "bite" if config.procedure == "bites" or bites_given is not None else "fragment"
-    solids: list[tuple[str, m3d.Manifold, float, m3d.Manifold | None]] = [
-        ("preop", anatomy.tissue, 0.0, None)
-    ]
-    solids += [
-        (f"{step_name}_{k}", r.tissue, r.removed_volume_mm3, r.cutter)
-        for k, r in enumerate(results, start=1)
-    ]
-    steps: list[Step] = []
-    sd = None
-    path = None
-    for k, (name, solid, removed, cutter) in enumerate(solids):
-        v, f = arrays_from_manifold(solid)
-        surface = SurfaceDistance(v, f)
-        if sd is None:
-            sd = surface.signed_distance_grid(grid.points(), clip, grid.spacing_mm)
-            path = airway_path(
-                surface,
-                np.asarray(anatomy.nostril_mm),
-                np.asarray(anatomy.airway_min_mm),
-                np.asarray(anatomy.airway_max_mm),
-                target,
-            )
-            note("airway path")
-        else:
-            assert cutter is not None  # only the preop solid (k == 0) has no cutter
-            box = cutter.bounding_box()
-            sd = update_sd(sd, grid, surface, np.asarray(box[:3]), np.asarray(box[3:]), clip)
-        cv = cf = None
-        if cutter is not None:
-            cv, cf = arrays_from_manifold(cutter)
-        tet_pts = tets = None
-        if config.tet:
-            from phantoms.tet import tetrahedralize
-
-            tet_pts, tets = tetrahedralize(v, f, config.tet_edge_mm)
-        steps.append(
-            Step(
-                name=name,
-                vertices_mm=v,
-                faces=f,
-                volume_mm3=float(solid.volume()),
-                removed_volume_mm3=float(removed),
-                label=labels_from_sd(sd, config.mucosa_mm),
-                hu=hu_from_sd(sd, config.spacing_mm, config.mucosa_mm, noise),
-                cutter_vertices_mm=cv,
-                cutter_faces=cf,
-                cut_faces=np.zeros(len(f), bool) if k == 0 else results[k - 1].cut_faces,
-                fragment=None if k == 0 else fragments[k - 1],
-                tet_points_mm=tet_pts,
-                tets=tets,
-            )
-        )
-        note(f"step {k} volumes")
-    assert path is not None
     roi_lo, roi_hi, _ = change_box(
         anatomy.tissue,
         results[-1].tissue,
@@ -245,12 +170,128 @@ def build_phantom(
         params=params,
         anatomy=anatomy,
         target=target,
-        bites=tuple(bites),
+        bites=tuple(f.bites[0] for f in fragments if f.bites),
         steps=tuple(steps),
         grid=grid,
         roi_min_mm=roi_lo,
         roi_max_mm=roi_hi,
         airway_path_mm=path,
+    )
+
+
+def _cut_plan(
+    anatomy: Anatomy, config: PhantomConfig, bites: list | None, plan_source: str
+) -> tuple[Target, list[Fragment], list[StepCut]]:
+    """The target, one fragment per step and the cuts applied: the procedure's own plan,
+    or the explicit ``bites`` checked against the procedure's structures."""
+    if bites is None:
+        return plan_procedure(
+            anatomy,
+            config.procedure,
+            config.n_bites,
+            config.seed,
+            config.target,
+            config.bite_size_mm,
+        )
+    target, _, _ = find_target(anatomy, config.target)
+    fragments = [_plan_fragment(b, config.target) for b in bites]
+    results = cut_steps(
+        anatomy,
+        fragments,
+        config.procedure,
+        allowed=plan_allowed_region(anatomy, config.procedure, config.target),
+        where=f"{plan_source} {{i}}",
+        edge_mm=min(config.mesh_edge_mm, 0.3),
+    )
+    return target, fragments, results
+
+
+def _voxelise_steps(
+    config: PhantomConfig,
+    anatomy: Anatomy,
+    target: Target,
+    fragments: list[Fragment],
+    results: list[StepCut],
+    step_name: str,
+    note: Callable[[str], None],
+) -> tuple[CTGrid, list[Step], np.ndarray]:
+    """The CT grid, every step's surface and volumes (step 0 = preop), and the airway path
+    (N, 3) mm, found on the preoperative surface.
+
+    The signed distance is computed once on the whole grid for the preop surface, then
+    updated inside each cutter's box only."""
+    clip = clip_distance_mm(config.spacing_mm, config.mucosa_mm)
+    grid = grid_for_block(
+        anatomy.block_min_mm,
+        anatomy.block_max_mm,
+        config.spacing_mm,
+        clip[0] + 2 * config.spacing_mm,
+    )
+    noise = ct_noise(grid.shape, config.noise_hu, config.seed)
+    steps: list[Step] = []
+    sd: np.ndarray | None = None
+    path: np.ndarray | None = None
+    for k, cut in enumerate([None, *results]):
+        solid = anatomy.tissue if cut is None else cut.tissue
+        v, f = arrays_from_manifold(solid)
+        surface = SurfaceDistance(v, f)
+        if cut is None:
+            sd = surface.signed_distance_grid(grid.points(), clip, grid.spacing_mm)
+            path = airway_path(
+                surface,
+                np.asarray(anatomy.nostril_mm),
+                np.asarray(anatomy.airway_min_mm),
+                np.asarray(anatomy.airway_max_mm),
+                target,
+            )
+            note("airway path")
+        else:
+            assert sd is not None  # step 0 (preop) comes first
+            box = cut.cutter.bounding_box()
+            sd = update_sd(sd, grid, surface, np.asarray(box[:3]), np.asarray(box[3:]), clip)
+        name = "preop" if cut is None else f"{step_name}_{k}"
+        fragment = None if cut is None else fragments[k - 1]
+        steps.append(_step(config, name, solid, v, f, sd, noise, cut, fragment))
+        note(f"step {k} volumes")
+    assert path is not None
+    return grid, steps, path
+
+
+def _step(
+    config: PhantomConfig,
+    name: str,
+    solid: m3d.Manifold,
+    v: np.ndarray,
+    f: np.ndarray,
+    sd: np.ndarray,
+    noise: np.ndarray | None,
+    cut: StepCut | None,
+    fragment: Fragment | None,
+) -> Step:
+    """One step from its surface ``v, f`` (of ``solid``) and the grid's signed distance
+    ``sd`` to it; ``cut`` and ``fragment`` are None for the preoperative step."""
+    cv = cf = None
+    if cut is not None:
+        cv, cf = arrays_from_manifold(cut.cutter)
+    tet_pts = tets = None
+    if config.tet:
+        from phantoms.tet import tetrahedralize
+
+        tet_pts, tets = tetrahedralize(v, f, config.tet_edge_mm)
+    return Step(
+        name=name,
+        vertices_mm=v,
+        faces=f,
+        volume_mm3=float(solid.volume()),
+        removed_volume_mm3=0.0 if cut is None else float(cut.removed_volume_mm3),
+        label=labels_from_sd(sd, config.mucosa_mm),
+        hu=hu_from_sd(sd, config.spacing_mm, config.mucosa_mm, noise),
+        cutter_vertices_mm=cv,
+        cutter_faces=cf,
+        cut_faces=np.zeros(len(f), bool) if cut is None else cut.cut_faces,
+        fragment=fragment,
+        tet_points_mm=tet_pts,
+        tets=tets,
     )
 
 

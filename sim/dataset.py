@@ -32,8 +32,9 @@ import numpy as np
 from tqdm import tqdm
 
 from chisel.core.atomic import atomic_write_text
+from chisel.io.manifest import read_json_manifest
 from sim.config import SimConfig, config_to_dict
-from sim.errors import ConfigError, PhantomError
+from sim.errors import ConfigError, PhantomError, SimError
 from sim.pipeline import drawn_config, render_phantom
 
 log = logging.getLogger(__name__)
@@ -206,15 +207,22 @@ def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 def _finished_render(header_path: Path, cfg: SimConfig, bites: int) -> dict[str, Any] | None:
     """The render.json of a seed that ``--resume`` may keep, or None to render it again.
 
-    A seed is finished when its render.json reads and every sequence it lists is there; a
-    half-deleted or corrupt one is rendered again. A finished seed rendered with other
-    options than this run's is refused: resuming would mix them in one dataset.
+    A seed is finished when its render.json reads (through the bounded JSON reader) and
+    every sequence it lists is there; a half-deleted one is rendered again, and so is one
+    whose render.json is corrupt (with a warning naming it). A finished seed rendered
+    with other options than this run's is refused: resuming would mix them in one dataset.
     """
+    if not header_path.exists():
+        return None
     try:
-        header = json.loads(header_path.read_text())
+        header = read_json_manifest(header_path, SimError)
         names = [header["sequences"]["preop"], *header["sequences"]["steps"].values()]
         recorded, num_steps = header["config"], int(header["num_steps"])
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+    except SimError as exc:
+        log.warning("rendering again: %s", exc)
+        return None
+    except (ValueError, KeyError, TypeError, AttributeError):
+        log.warning("rendering again: %s: not a complete render.json", header_path)
         return None
     if not all((header_path.parent / n / "sequence.json").is_file() for n in names):
         return None
@@ -230,6 +238,14 @@ def _finished_render(header_path: Path, cfg: SimConfig, bites: int) -> dict[str,
             "use the same options or another --out",
         )
     return header
+
+
+def _num_frames(sequence_json: Path) -> int:
+    """The frame count a rendered sequence's ``sequence.json`` records."""
+    num_frames = read_json_manifest(sequence_json, SimError).get("num_frames")
+    if not isinstance(num_frames, int) or isinstance(num_frames, bool) or num_frames < 0:
+        raise SimError(sequence_json, f"num_frames: expected an integer >= 0, got {num_frames!r}")
+    return num_frames
 
 
 def build_dataset(
@@ -277,14 +293,13 @@ def build_dataset(
             for k, v in sorted(header["sequences"]["steps"].items(), key=lambda kv: int(kv[0]))
         ]
         for kind, step, name in names:
-            seq_header = json.loads((render_dir / name / "sequence.json").read_text())
             entries.append(
                 {
                     "path": f"seed_{seed}/{name}",
                     "phantom_seed": int(seed),
                     "kind": kind,
                     "step": step,
-                    "num_frames": int(seq_header["num_frames"]),
+                    "num_frames": _num_frames(render_dir / name / "sequence.json"),
                 }
             )
     dataset = {

@@ -20,10 +20,11 @@ import pytest
 
 from chisel.core.atomic import atomic_dir
 from chisel.core.errors import InvalidInputError, run_command
+from chisel.io.manifest import MAX_MANIFEST_BYTES
 from chisel.io.sequence import Sequence
 from sim.cli import main
 from sim.config import SimConfig, replace_in
-from sim.dataset import build_dataset
+from sim.dataset import _finished_render, build_dataset
 from sim.errors import ConfigError
 from sim.synthetic import write_toy_phantom
 
@@ -139,3 +140,54 @@ def test_dataset_resume_renders_broken_seeds_again_and_refuses_other_options(
     assert (out / "dataset.json").read_text() == listing
     assert not (out / "seed_3").exists()
     assert json.loads(listing)["num_sequences"] == 4
+
+
+def _write_bad_json(path: Path, kind: str) -> None:
+    """A file the bounded JSON reader refuses: cut short, nested past its depth limit
+    (json itself would recurse into a RecursionError), or over its size limit (sparse)."""
+    if kind == "malformed":
+        path.write_text('{"format": "endoscopic-chisel/sequence", "num_frames": 2')
+    elif kind == "deep":
+        path.write_text("[" * 100_000 + "]" * 100_000)
+    else:
+        with path.open("wb") as f:
+            f.truncate(MAX_MANIFEST_BYTES + 1)
+
+
+PROBLEMS = {"malformed": "invalid JSON", "deep": "nested deeper than", "huge": "at most"}
+
+
+@pytest.mark.parametrize("kind", sorted(PROBLEMS))
+def test_resume_renders_a_seed_again_whose_render_json_is_unreadable(
+    tmp_path: Path, tiny_sim_config: SimConfig, caplog: pytest.LogCaptureFixture, kind: str
+) -> None:
+    header = tmp_path / "seed_1/render.json"
+    header.parent.mkdir()
+    _write_bad_json(header, kind)
+    with caplog.at_level("WARNING", logger="sim.dataset"):
+        assert _finished_render(header, tiny_sim_config, bites=1) is None
+    (record,) = caplog.records
+    assert f"{header}: " in record.getMessage() and PROBLEMS[kind] in record.getMessage()
+    # A seed never rendered is not worth a warning.
+    caplog.clear()
+    assert _finished_render(tmp_path / "seed_2/render.json", tiny_sim_config, 1) is None
+    assert not caplog.records
+
+
+def test_resume_over_an_unreadable_sequence_json_is_one_line_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    gen = f"{sys.executable} -m sim.synthetic"  # the toy phantom, generator contract
+    out = tmp_path / "ds"
+    argv = ["dataset", "--seeds", "1", "--bites", "1", "--out", str(out), "--phantom-cmd", gen]
+    assert main([*argv, *SMALL]) == 0
+    listing = (out / "dataset.json").read_text()
+    capsys.readouterr()
+    seq_json = out / "seed_1/step_01/sequence.json"
+    for kind, problem in PROBLEMS.items():
+        _write_bad_json(seq_json, kind)
+        assert main([*argv, *SMALL, "--resume"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1, err
+        assert err.startswith(f"sim dataset: error: {seq_json}: ") and problem in err, err
+    assert (out / "dataset.json").read_text() == listing

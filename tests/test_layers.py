@@ -20,14 +20,10 @@ MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 120
 # Still over the size goals of the issue on the house: these lists only shrink, and a
 # module or function that gets under its goal must leave them (the test then says so).
-OVERSIZED_MODULES = {
-    "sim/config.py",
-}
+OVERSIZED_MODULES: set[str] = set()
 LONG_FUNCTIONS = {
     "chisel/cli/cmd_depth.py:register",
     "chisel/cli/cmd_model.py:register",
-    "phantoms/anatomy.py:build_anatomy",
-    "phantoms/generate.py:build_phantom",
 }
 
 

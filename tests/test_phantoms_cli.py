@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from chisel.io.manifest import MAX_MANIFEST_BYTES
 from phantoms import generate
 from phantoms.anatomy import arrays_from_manifold, build_anatomy, manifold_from_arrays
 from phantoms.bites import Bite, apply_bites, cutter_manifold, find_target
@@ -372,4 +373,35 @@ def test_a_plan_with_text_for_a_number_is_one_line(tmp_path, capsys):
     )
     err = capsys.readouterr().err.strip()
     assert rc != 0 and "bite 0" in err and "lists of numbers" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize(
+    "kind, problem",
+    [
+        ("malformed", "invalid JSON"),
+        ("deep", "nested deeper than"),
+        ("huge", "a manifest is at most"),
+        ("binary", "not a text file"),
+        ("missing", "cannot read"),
+    ],
+)
+def test_an_unreadable_plan_file_is_one_line_naming_it(tmp_path, capsys, kind, problem):
+    # The plan goes through the project's one bounded JSON reader: a huge file is refused
+    # by its size before it is read, a deep one before json recurses into a traceback.
+    plan = tmp_path / "plan.json"
+    if kind == "malformed":
+        plan.write_text('[{"center_mm": [1, 2, 3], "size_mm": [2, 2, 2]')
+    elif kind == "deep":
+        plan.write_text("[" * 100_000 + "]" * 100_000)
+    elif kind == "huge":
+        with plan.open("wb") as f:  # sparse: the size alone is over the limit
+            f.truncate(MAX_MANIFEST_BYTES + 1)
+    elif kind == "binary":
+        plan.write_bytes(b"[\xff\xfe]")
+    argv = ["generate", "--seed", "0", "--bites", "1", "--plan", str(plan)]
+    rc = main([*argv, "--out", str(tmp_path / "p")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1, err
+    assert err.startswith(f"phantoms generate: error: {plan}: ") and problem in err, err
     assert not (tmp_path / "p").exists()

@@ -70,6 +70,15 @@ def read_json_manifest(
     that is not an object. NaN/Infinity literals (which Python writes) are read; each
     field's own check refuses them where a finite number is needed.
     """
+    data = read_json_value(path, error)
+    if not isinstance(data, dict):
+        raise error(Path(path), f"expected a JSON object, got {json_type(data)}")
+    return data
+
+
+def read_json_value(path: str | Path, error: type[InvalidInputError] = InvalidInputError) -> Any:
+    """Any JSON value from ``path`` (a list, for a bite plan), read and refused as
+    :func:`read_json_manifest` reads and refuses, but whatever its top level."""
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -93,8 +102,6 @@ def read_json_manifest(
         data = json.loads(text)
     except (ValueError, RecursionError) as exc:
         raise error(path, f"invalid JSON: {exc}") from None
-    if not isinstance(data, dict):
-        raise error(path, f"expected a JSON object, got {json_type(data)}")
     return data
 
 
