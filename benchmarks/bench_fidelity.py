@@ -26,16 +26,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from sim.dataset import parse_seeds
+
 ROOT = Path(__file__).resolve().parents[1]
 EXACT, NETWORK, NONE = "depth_ablation", "updated", "no_update"
-
-
-def parse_seeds(text: str) -> list[int]:
-    seeds: list[int] = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        seeds += list(range(int(lo), int(hi or lo) + 1))
-    return seeds
 
 
 def _cells(metrics: Mapping[str, Any]) -> dict[int, dict[str, dict[str, Any]]]:

@@ -11,7 +11,6 @@ import argparse
 import logging
 import sys
 from pathlib import Path
-from typing import cast
 
 from chisel.io.manifest import read_json_value
 from phantoms.errors import ParameterRangeError, PhantomError
@@ -242,18 +241,14 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 def _cmd_repair(args: argparse.Namespace) -> int:
     import numpy as np
-    import trimesh
 
+    from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
     from phantoms.errors import NotManifoldError
     from phantoms.io import atomic_write_bytes, check_output_dir, ply_bytes
     from phantoms.tet import repair_surface
 
     check_output_dir(args.output)
-    try:
-        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
-        mesh = cast("trimesh.Trimesh", trimesh.load(args.input, force="mesh", process=False))
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types for unreadable files
-        raise NotManifoldError(args.input, f"cannot read a triangle mesh: {exc}") from None
+    mesh = read_mesh_file(args.input, "surface", READABLE_MESH_SUFFIXES, error=NotManifoldError)
     v, f = repair_surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), edge_mm=args.edge_mm)
     atomic_write_bytes(args.output, ply_bytes(v, f))
     sys.stderr.write(f"repaired surface ({len(f)} triangles) written to {args.output}\n")

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import cast
 
 import manifold3d as m3d
 import numpy as np
 
+from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
 from phantoms.anatomy import manifold_from_arrays
 from phantoms.errors import NotManifoldError
 
@@ -20,7 +20,7 @@ def load_tissue(
     Parameters
     ----------
     path : str or Path
-        Any triangle-mesh format trimesh reads.
+        A triangle mesh (:data:`chisel.io.meshfile.READABLE_MESH_SUFFIXES`).
     repair : bool
         Close a surface that is not a closed manifold with
         :func:`phantoms.tet.repair_surface` instead of raising.
@@ -31,14 +31,8 @@ def load_tissue(
         If the file is unreadable, or (without ``repair``) not a closed, oriented
         2-manifold.
     """
-    import trimesh
-
     path = Path(path)
-    try:
-        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
-        mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=False))
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types for unreadable files
-        raise NotManifoldError(path, f"cannot read a triangle mesh: {exc}") from None
+    mesh = read_mesh_file(path, "surface", READABLE_MESH_SUFFIXES, error=NotManifoldError)
     v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     if repair:
         from phantoms.tet import repair_surface

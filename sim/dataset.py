@@ -123,6 +123,10 @@ def dataset_card(
     }
 
 
+MAX_SEEDS = 100_000
+"""Most phantom seeds one ``--seeds`` may name (a typo like 0-999999999999 filled memory)."""
+
+
 def parse_seeds(text: str) -> list[int]:
     """``"100-119"``, ``"1,4,9"`` or ``"7"`` (and mixtures like ``"1-3,8"``) -> sorted seeds."""
     seeds: set[int] = set()
@@ -135,6 +139,11 @@ def parse_seeds(text: str) -> list[int]:
                 a, b = (int(x) for x in part.split("-", 1))
                 if b < a:
                     raise ValueError(f"range {part} is reversed")
+                if b - a + 1 + len(seeds) > MAX_SEEDS:
+                    raise ConfigError(
+                        "--seeds",
+                        f"{part!r} names {b - a + 1} seeds, over the limit of {MAX_SEEDS}",
+                    )
                 seeds.update(range(a, b + 1))
             else:
                 seeds.add(int(part))

@@ -15,13 +15,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import trimesh
 
 from chisel.io.manifest import named_path, read_json_manifest
-from chisel.io.meshfile import MESH_SUFFIXES
+from chisel.io.meshfile import MESH_SUFFIXES, READABLE_MESH_SUFFIXES, read_mesh_file
 from sim.errors import MeshError, PhantomError
 
 PHANTOM_FORMAT = "endoscopic-chisel/phantom"
@@ -181,14 +181,8 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
     p = Path(path)
     if not p.is_file():
         raise MeshError(p, "mesh file does not exist")
-    try:
-        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
-        mesh = cast(trimesh.Trimesh, trimesh.load(p, force="mesh", process=True))
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
-        # trimesh's own message ("list index out of range") does not say what is wrong.
-        raise MeshError(
-            p, f"not a readable mesh file (PLY/STL/OBJ expected): {type(exc).__name__}: {exc}"
-        ) from None
+    # Processed (duplicate vertices merged): smooth vertex normals for rendering.
+    mesh = read_mesh_file(p, "mesh file", READABLE_MESH_SUFFIXES, process=True, error=MeshError)
     mesh = check_mesh(mesh, str(p))
     # Lets path errors name the mesh file (sim.collision.TissueDistance.source).
     mesh.metadata["file_path"] = str(p.absolute())

@@ -21,12 +21,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import cast
 
 import numpy as np
 import trimesh
 
 from chisel.core.geometry import Camera, make_transform
+from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
 from sim.collision import TissueDistance
 from sim.config import ToolKind, ToolsConfig
 from sim.errors import MeshError, PathError, PathInTissueError
@@ -145,13 +145,9 @@ def load_tool_model(path: str | Path) -> trimesh.Trimesh:
     p = Path(path)
     if not p.is_file():
         raise MeshError(p, "tools.model_file: file does not exist")
-    try:
-        # load() is annotated Geometry; force="mesh" returns a Trimesh (Scene.to_mesh)
-        mesh = cast(trimesh.Trimesh, trimesh.load(p, force="mesh", process=True))
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
-        raise MeshError(
-            p, f"tools.model_file: not a readable mesh: {type(exc).__name__}: {exc}"
-        ) from None
+    mesh = read_mesh_file(
+        p, "tools.model_file mesh", READABLE_MESH_SUFFIXES, process=True, error=MeshError
+    )
     return check_tool_mesh(mesh, f"{p} (tools.model_file)")
 
 

@@ -419,7 +419,7 @@ def test_evaluate_step_from_files_uses_true_poses(tmp_path: Path) -> None:
 def test_evaluate_step_rejects_bad_files(tmp_path: Path) -> None:
     p = _scene(tmp_path)
     box = [-4.0, -3.0, 15.0, 4.0, 3.0, 25.0]
-    with pytest.raises(InvalidInputError, match="missing"):
+    with pytest.raises(InvalidInputError, match="nope.ply.*not found"):
         evaluate_step(p["gt"], {"updated": tmp_path / "nope.ply"}, p["seq"], box, 1, CFG)
     empty = tmp_path / "empty.ply"
     empty.write_text(

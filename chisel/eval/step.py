@@ -45,6 +45,7 @@ from chisel.eval.tables import (
 )
 from chisel.eval.volume import RemovalScores, model_removal, removal_scores, true_removal
 from chisel.io.images import decode_image
+from chisel.io.meshfile import read_mesh_file
 from chisel.io.sequence import Sequence as SequenceFolder
 
 log = logging.getLogger(__name__)
@@ -187,19 +188,9 @@ def protocol_dict(
 
 
 def load_mesh(path: str | Path, source: str) -> trimesh.Trimesh:
-    """Read a triangle mesh (PLY/STL/OBJ) with trimesh; raise if missing, unreadable or empty."""
-    path = Path(path)
-    if not path.is_file():
-        raise InvalidInputError(path, f"{source}: mesh file is missing")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on bad files
-        raise InvalidInputError(path, f"{source}: cannot read mesh: {exc}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InvalidInputError(path, f"{source}: mesh is empty (no triangles)")
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise InvalidInputError(path, f"{source}: vertices contain NaN/inf")
-    return mesh
+    """Read a triangle mesh (PLY/STL/OBJ) through the one mesh reader; ``source`` names
+    its role ("gt", "preop") in the errors."""
+    return read_mesh_file(path, f"{source} mesh")
 
 
 def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -> np.ndarray:

@@ -58,9 +58,9 @@ from chisel.io.limits import (
     MAX_VOXEL_SIZE_MM,
     MIN_VOXEL_SIZE_MM,
 )
-from chisel.io.meshfile import read_mesh_file
+from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
 
-MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".glb")
+MESH_SUFFIXES = READABLE_MESH_SUFFIXES
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
 NRRD_SUFFIXES = (".nrrd", ".nhdr")
 VOLUME_SUFFIXES = NIFTI_SUFFIXES + NRRD_SUFFIXES

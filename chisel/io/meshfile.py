@@ -11,6 +11,9 @@ from chisel.core.errors import InvalidInputError, ResourceLimitError, out_of_mem
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 """Mesh formats a manifest may name (read by trimesh)."""
+READABLE_MESH_SUFFIXES = (*MESH_SUFFIXES, ".off", ".glb")
+"""Every mesh format the readers take from a user's own file (a CT segmentation, a
+phantom's or a tool's mesh): what trimesh reads as one triangle mesh."""
 
 MAX_MESH_FILE_BYTES = 2 * 2**30
 """Largest mesh file read; a CT segmentation surface is tens of MB."""
