@@ -328,3 +328,13 @@ def test_a_morphology_kernel_wider_than_any_image_is_refused() -> None:
         with pytest.raises(InvalidInputError, match=rf"{name}: must be at most 16384 px"):
             ChangeConfig(**{name: 10**9})
     assert ChangeConfig(open_px=16384).open_px == 16384
+
+
+def test_a_seed_range_of_a_trillion_is_refused_before_it_fills_memory() -> None:
+    from sim.dataset import MAX_SEEDS, parse_seeds
+    from sim.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="over the limit") as info:
+        parse_seeds("0-999999999999")
+    assert info.value.source == "--seeds"
+    assert len(parse_seeds(f"0-{MAX_SEEDS - 1}")) == MAX_SEEDS
