@@ -21,6 +21,7 @@ from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
 from chisel.depth_source import estimate_depth, is_metric, wants_prior
 from chisel.detect import (
+    Context,
     FrameInput,
     HandEye,
     confirm_changes,
@@ -174,10 +175,10 @@ def update_step(
         hand_eye.F, hand_eye.fixed = plan.hand_eye, True
     dets = []
     for inp in progress(plan.inputs) if progress is not None else plan.inputs:
-        det = detect(
-            inp, camera, plan.renderer, hand_eye.current(), hand_eye.prior, step_cfg,
-            solve_for_scale,
-        )  # fmt: skip
+        ctx = Context(
+            camera, plan.renderer, step_cfg, solve_for_scale, hand_eye.current(), hand_eye.prior
+        )
+        det = detect(inp, ctx)
         hand_eye.learn(det)
         dets.append(det)
     if cfg.change.min_views > 0:

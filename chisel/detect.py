@@ -153,28 +153,32 @@ def sample_points(
     return transform_points(T_world_from_cam, pc)
 
 
-def detect(
-    inp: FrameInput,
-    camera: Camera,
-    renderer: ModelRenderer,
-    hand_eye: np.ndarray,
-    prior: bool,
-    cfg: UpdateConfig,
-    solve_for_scale: bool,
-) -> Detection:
+@dataclass(frozen=True)
+class Context:
+    """What a frame is detected against: the step's M_t and configuration, and the
+    hand-eye estimate at this frame."""
+
+    camera: Camera
+    renderer: ModelRenderer
+    """M_t: renders and the registration target."""
+    cfg: UpdateConfig
+    solve_for_scale: bool
+    """The estimate is up to scale (:func:`scale_free`)."""
+    hand_eye: np.ndarray
+    """(4, 4) camera-side correction F to start registration from."""
+    prior: bool
+    """Hold the frame's ICP near ``hand_eye``."""
+
+
+def detect(inp: FrameInput, ctx: Context) -> Detection:
     """Registration and change mask of one frame (the model is not touched).
 
-    hand_eye : (4, 4) camera-side correction F to start registration from; prior : hold
-    the frame's ICP near it; solve_for_scale : the estimate is up to scale
-    (:func:`scale_free`). A frame with no overlap for its scale is returned unused.
+    A frame with no overlap for its scale is returned unused.
     """
-    T = inp.T_world_from_cam
-    R = renderer.render(camera, T) if inp.render_mm is None else inp.render_mm
+    T, cfg = inp.T_world_from_cam, ctx.cfg
+    R = ctx.renderer.render(ctx.camera, T) if inp.render_mm is None else inp.render_mm
     try:
-        m_raw, scale, reg = register_frame(
-            T, inp.estimate, R, inp.scale0, camera, renderer, hand_eye, prior, cfg,
-            solve_for_scale,
-        )  # fmt: skip
+        m_raw, scale, reg = register_frame(T, inp.estimate, R, inp.scale0, ctx)
     except EmptyResultError as exc:
         return Detection(index=inp.frame.index, used=False, reason=str(exc))
     correction = None
@@ -198,20 +202,14 @@ def detect(
 
 
 def register_frame(
-    T: np.ndarray,
-    E: np.ndarray,
-    R: np.ndarray,
-    scale0: float | None,
-    camera: Camera,
-    renderer: ModelRenderer,
-    hand_eye: np.ndarray,
-    prior: bool,
-    cfg: UpdateConfig,
-    solve_for_scale: bool,
+    T: np.ndarray, E: np.ndarray, R: np.ndarray, scale0: float | None, ctx: Context
 ) -> tuple[np.ndarray, float, RegistrationResult | None]:
     """M' before imputation (NaN = lost), the scale, and the registration (None = off).
 
+    T : tracked pose; E : the estimate; R : M_t at T; scale0 : E's scale if solved.
     Raises :class:`EmptyResultError` when the scale cannot be solved (no overlap)."""
+    camera, renderer, cfg = ctx.camera, ctx.renderer, ctx.cfg
+    solve_for_scale, hand_eye, prior = ctx.solve_for_scale, ctx.hand_eye, ctx.prior
     if not solve_for_scale:
         s0 = 1.0
     elif scale0 is not None:

@@ -35,6 +35,7 @@ from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, check_rigid
 from chisel.depth_source import estimate_depth, is_metric
 from chisel.detect import (
+    Context,
     Detection,
     FrameInput,
     HandEye,
@@ -215,10 +216,11 @@ class ChiselUpdater:
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
         R = renderer.render(self.camera, T)
         inp = FrameInput(frame, T, self.estimate(frame, R), render_mm=R)
-        det = detect(
-            inp, self.camera, renderer, self.hand_eye, self._hand_eye.prior, self.cfg,
-            scale_free(self.cfg, self.depth_source),
+        ctx = Context(
+            self.camera, renderer, self.cfg, scale_free(self.cfg, self.depth_source),
+            self.hand_eye, self._hand_eye.prior,
         )  # fmt: skip
+        det = detect(inp, ctx)
         self._hand_eye.learn(det)
         rep = fuse(self.model, self.camera, det, self.cfg, self._reset_grid(), frame.rgb, keep_maps)
         self._frames.append(rep)
