@@ -136,6 +136,7 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
         resume=args.resume,
         progress=not args.quiet,
         command=["python", "-m", "sim", *args.argv],
+        write_index=not args.no_index,
     )
     logging.getLogger("sim").info(
         "dataset: %d sequences, %d frames in %s", ds["num_sequences"], ds["num_frames"], args.out
@@ -230,6 +231,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--phantom-args", default="", help="extra arguments for the generator, one string"
     )
     d.add_argument("--resume", action="store_true", help="keep seeds already rendered in DIR")
+    d.add_argument(
+        "--no-index",
+        action="store_true",
+        help="render the seeds only, without DIR/dataset.json and the card (one job per seed; "
+        "a final --resume run over every seed writes them)",
+    )
     _add_render_options(d)
     d.set_defaults(func=_cmd_dataset)
 

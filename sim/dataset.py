@@ -267,8 +267,13 @@ def build_dataset(
     resume: bool = False,
     progress: bool = True,
     command: list[str] | None = None,
+    write_index: bool = True,
 ) -> dict[str, Any]:
     """Generate and render every seed; write and return ``dataset.json``'s content.
+
+    write_index : False renders the seeds only (``seed_S/``, ``phantoms/seed_S/``) and
+    writes neither ``dataset.json`` nor the card: one job per seed on a cluster, then one
+    ``resume`` run over all seeds that finds them rendered and writes the index.
 
     ``cfg.randomization`` ranges are sampled once per phantom seed (randomisation is
     switched on here whatever ``cfg.randomization.enabled`` says), with the render seed
@@ -321,6 +326,8 @@ def build_dataset(
         "sequences": entries,
         "config": config_to_dict(cfg),
     }
+    if not write_index:
+        return dataset
     card = dataset_card(json.loads(json.dumps(dataset)), command, renders)
     atomic_write_text(out / "dataset_card.json", json.dumps(card, indent=2) + "\n")
     atomic_write_text(out / "dataset.json", json.dumps(dataset, indent=2) + "\n")

@@ -125,3 +125,33 @@ def test_smoke_experiment_end_to_end(tmp_path: Path) -> None:
     # An interrupted or repeated run finds nothing left to do.
     again = run(["-n", "--cores", "2", *extra], tmp_path)
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
+
+
+def test_dataset_target_renders_one_job_per_seed_and_indexes_them(tmp_path: Path) -> None:
+    # A tiny training set over two phantom seeds: one job per seed (a cluster runs them in
+    # parallel through the same executor as the benchmark), then the index and the card.
+    cfg = tmp_path / "dataset.yaml"
+    cfg.write_text(
+        yaml.safe_dump(
+            {"dataset": {"seeds": "1000-1001", "bites": 1, "frames": 4, "preop_frames": 4,
+                         "width": 48, "height": 40, "spp": 1}}
+        )
+    )  # fmt: skip
+    conf = ["--configfile", str(ROOT / "config" / "smoke.yaml"), str(cfg)]
+    dry = run(["dataset", "-n", "--cores", "2", *conf], tmp_path)
+    assert dry.returncode == 0, dry.stdout + dry.stderr
+    assert "dataset_seed        2" in dry.stdout
+    r = run(["dataset", "--cores", "2", *conf], tmp_path, timeout_s=900)
+    assert r.returncode == 0, r.stdout[-5000:] + r.stderr[-5000:]
+    out = tmp_path / "results/smoke/dataset"
+    index = json.loads((out / "dataset.json").read_text())
+    assert index["seeds"] == [1000, 1001] and index["num_sequences"] == 4
+    for entry in index["sequences"]:
+        assert (out / entry["path"] / "sequence.json").is_file()
+    card = json.loads((out / "dataset_card.json").read_text())
+    assert set(card["drawn"]) == {"1000", "1001"} and card["counts"]["frames"] == 16
+    # Without seeds the target says what it needs.
+    (tmp_path / "none.yaml").write_text(yaml.safe_dump({"dataset": {"frames": 4}}))
+    bad = run(["dataset", "-n", "--configfile", str(ROOT / "config" / "smoke.yaml"),
+               str(tmp_path / "none.yaml")], tmp_path)  # fmt: skip
+    assert bad.returncode != 0 and "dataset.seeds" in bad.stdout + bad.stderr

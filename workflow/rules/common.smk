@@ -234,3 +234,34 @@ def extra_depth_options(wc, input):
     if spec.get("metric", False):
         opts.append("--metric")
     return " ".join(shlex.quote(o) for o in opts)
+
+
+# The `dataset` target (rules in dataset.smk): config dataset, options passed to
+# `python -m sim dataset` only when set, so that sim keeps the one home of its defaults.
+DATASET = dict(config.get("dataset") or {})
+DATASET_DIR = f"{RESULTS}/dataset"
+
+
+def dataset_seeds():
+    from sim.dataset import parse_seeds
+
+    if "seeds" not in DATASET:
+        raise ValueError("config dataset.seeds: the `dataset` target needs seeds, e.g. '1000-1099'")
+    return parse_seeds(DATASET["seeds"])
+
+
+def dataset_options(wc=None):
+    import shlex
+
+    opts = []
+    for key in ("bites", "frames", "preop_frames", "width", "height", "spp", "seed", "config"):
+        if key in DATASET:
+            opts += [f"--{key.replace('_', '-')}", str(DATASET[key])]
+    for key in ("tools", "depth_only"):
+        if DATASET.get(key, False):
+            opts.append(f"--{key.replace('_', '-')}")
+    return " ".join(shlex.quote(o) for o in opts)
+
+
+def dataset_renders(wc):
+    return [f"{DATASET_DIR}/seed_{s}" for s in dataset_seeds()]
