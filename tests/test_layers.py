@@ -25,8 +25,6 @@ OVERSIZED_MODULES = {
     "sim/config.py",
 }
 LONG_FUNCTIONS = {
-    "chisel/cli/cmd_depth.py:register",
-    "chisel/cli/cmd_model.py:register",
     "phantoms/anatomy.py:build_anatomy",
     "phantoms/generate.py:build_phantom",
 }

@@ -36,6 +36,15 @@ Formats and units:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``chisel ct-surface | build | update | mesh | render-depth``."""
+    _add_ct_surface(sub)
+    _add_build(sub)
+    _add_update(sub)
+    _add_mesh(sub)
+    _add_render_depth(sub)
+
+
+def _add_ct_surface(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "ct-surface",
         help="turn a CT segmentation (NIfTI or mesh) into a surface mesh in world mm",
@@ -61,6 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_cmd_ct_surface)
 
+
+def _add_build(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "build",
         help="build the preoperative TSDF model from the CT (whole CT or the preop sweep)",
@@ -138,6 +149,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_build)
 
+
+def _add_update(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "update",
         help="apply one surgical step (a sequence) to a model: detect change, carve it",
@@ -208,6 +221,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_update)
 
+
+def _add_mesh(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "mesh",
         help="extract the surface of a model (marching cubes at D = 0), world mm",
@@ -221,6 +236,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_cmd_mesh)
 
+
+def _add_render_depth(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "render-depth",
         help="render z-depth of a model or mesh at every pose of a sequence",
