@@ -70,7 +70,7 @@ FINETUNE_OPTS = [
 
 def train(args: argparse.Namespace) -> int:
     """``chisel depth train --kind change-aware``."""
-    refs = read_step_dataset(args.data)
+    refs = read_step_dataset(args.data, args.allow_outside_manifest)
     check_change_training_seeds(refs)
     seeds = sorted({r.seed for r in refs})
     val_seeds = held_out_groups(seeds, args.val_fraction, args.seed)

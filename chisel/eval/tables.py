@@ -17,6 +17,7 @@ import numpy as np
 
 from chisel.core.atomic import atomic_write_text
 from chisel.core.errors import InvalidInputError
+from chisel.io.manifest import read_json_manifest
 
 METHODS: tuple[str, ...] = ("no_update", "updated", "depth_ablation", "registration_ablation")
 """The paper's methods, in table order. Other method names are allowed and sort after these."""
@@ -182,14 +183,12 @@ def _json_text(d: Mapping[str, Any]) -> str:
 
 
 def read_json(path: str | Path, what: str) -> dict[str, Any]:
-    """Read a JSON file, raising :class:`InvalidInputError` naming it on any problem."""
+    """Read a JSON object through :func:`chisel.io.manifest.read_json_manifest` (size and
+    nesting bounded); every problem is an :class:`InvalidInputError` naming the file."""
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, f"{what} file is missing")
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InvalidInputError(path, f"invalid JSON in {what}: {exc}") from None
+    return read_json_manifest(path)
 
 
 def read_metrics(path: str | Path) -> dict[str, Any]:
