@@ -68,7 +68,14 @@ def test_config_checks_name_the_field() -> None:
         TrainConfig(lr=-1.0)
     with pytest.raises(InvalidInputError, match=r"ChangeTrainConfig\.eval_every"):
         ChangeTrainConfig(eval_every=0)
-    check_config(object(), {"anything": True})  # all checks pass: no error
+    # The shared fields are checked alike for both (the monocular config took lr=inf).
+    for cls in (TrainConfig, ChangeTrainConfig):
+        with pytest.raises(InvalidInputError, match=rf"{cls.__name__}\.lr: invalid value inf"):
+            cls(lr=math.inf)
+        with pytest.raises(InvalidInputError, match=rf"{cls.__name__}\.num_threads"):
+            cls(num_threads=0)
+    with pytest.raises(InvalidInputError, match=r"TrainConfig\.epochs"):
+        check_config(TrainConfig(), {"epochs": False})  # a config's own check
 
 
 def test_change_aware_training_stops_at_a_nan_loss() -> None:

@@ -35,11 +35,11 @@ from chisel.depth.optim import (
     BestWeights,
     RunningMeans,
     check_config,
-    check_loss,
     check_weights,
     optimizer,
     out_of_time,
     set_train_mode,
+    take_step,
 )
 from chisel.depth.train import deterministic, resolve_device
 
@@ -121,16 +121,10 @@ class ChangeTrainConfig:
             self,
             {
                 "steps": self.steps >= 1,
-                "batch_size": self.batch_size >= 1,
-                "lr": self.lr > 0 and math.isfinite(self.lr),
-                "weight_decay": self.weight_decay >= 0,
-                "warmup_fraction": 0.0 <= self.warmup_fraction < 1.0,
                 "change_weight": self.change_weight >= 0,
                 "bce_weight": self.bce_weight >= 0,
                 "photometric": 0.0 <= self.photometric < 1.0,
-                "max_minutes": self.max_minutes is None or self.max_minutes > 0,
                 "eval_every": self.eval_every >= 1,
-                "num_threads": self.num_threads is None or self.num_threads >= 1,
             },
         )
 
@@ -318,12 +312,7 @@ def train_change_aware(
             rgb, prior, target, changed = (t.to(device) for t in (rgb, prior, target, changed))
             r, c = predictor.raw(rgb, prior)
             loss, parts = change_loss(r, c, prior, target, changed, cfg)
-            loss_value = check_loss(loss, f"step {step}", cfg.lr)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            means.add(loss_value, parts)
+            means.add(take_step(opt, sched, loss, f"step {step}", cfg.lr), parts)
             last_step = step
             timed_out = out_of_time(t0, cfg.max_minutes)
             if step % cfg.eval_every == 0 or step == cfg.steps or timed_out:

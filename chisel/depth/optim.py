@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterable, Mapping
+from typing import Protocol
 
 import torch
 
@@ -20,8 +21,35 @@ from chisel.core.errors import InvalidInputError, TrainingDivergedError
 from chisel.depth.checkpoint import nonfinite_tensors
 
 
-def check_config(cfg: object, checks: Mapping[str, bool]) -> None:
-    """Raise :class:`InvalidInputError` naming ``Class.field`` for the first failed check."""
+class OptimSettings(Protocol):
+    """The fields every trainer's config has (``TrainConfig``, ``ChangeTrainConfig``)."""
+
+    @property
+    def batch_size(self) -> int: ...
+    @property
+    def lr(self) -> float: ...
+    @property
+    def weight_decay(self) -> float: ...
+    @property
+    def warmup_fraction(self) -> float: ...
+    @property
+    def max_minutes(self) -> float | None: ...
+    @property
+    def num_threads(self) -> int | None: ...
+
+
+def check_config(cfg: OptimSettings, own: Mapping[str, bool]) -> None:
+    """Check the shared optimisation fields, then the config's ``own`` checks (field ->
+    passed); raise :class:`InvalidInputError` naming ``Class.field`` at the first failure."""
+    checks = {
+        "batch_size": cfg.batch_size >= 1,
+        "lr": cfg.lr > 0 and math.isfinite(cfg.lr),
+        "weight_decay": cfg.weight_decay >= 0,
+        "warmup_fraction": 0.0 <= cfg.warmup_fraction < 1.0,
+        "max_minutes": cfg.max_minutes is None or cfg.max_minutes > 0,
+        "num_threads": cfg.num_threads is None or cfg.num_threads >= 1,
+        **own,
+    }
     for name, ok in checks.items():
         if not ok:
             raise InvalidInputError(
@@ -119,11 +147,22 @@ def diverged(where: str, what: str, lr: float) -> TrainingDivergedError:
     )
 
 
-def check_loss(loss: torch.Tensor, where: str, lr: float) -> float:
-    """The loss as a float; raise :func:`diverged` when it is NaN or infinite."""
+def take_step(
+    opt: torch.optim.Optimizer,
+    sched: torch.optim.lr_scheduler.LRScheduler,
+    loss: torch.Tensor,
+    where: str,
+    lr: float,
+) -> float:
+    """One optimisation step on ``loss``; its value, or :func:`diverged` when it is NaN or
+    infinite (checked before the step, so the weights stay finite)."""
     value = float(loss.detach())
     if not math.isfinite(value):
         raise diverged(where, f"the loss is {value}", lr)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    sched.step()
     return value
 
 

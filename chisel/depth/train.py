@@ -29,11 +29,11 @@ from chisel.depth.optim import (
     BestWeights,
     RunningMeans,
     check_config,
-    check_loss,
     check_weights,
     optimizer,
     out_of_time,
     set_train_mode,
+    take_step,
 )
 
 log = logging.getLogger(__name__)
@@ -78,15 +78,9 @@ class TrainConfig:
             self,
             {
                 "epochs": self.epochs >= 1,
-                "batch_size": self.batch_size >= 1,
-                "lr": self.lr > 0,
-                "weight_decay": self.weight_decay >= 0,
-                "warmup_fraction": 0.0 <= self.warmup_fraction < 1.0,
                 "si_lambda": 0.0 <= self.si_lambda <= 1.0,
                 "grad_weight": self.grad_weight >= 0,
                 "grad_scales": self.grad_scales >= 1,
-                "max_minutes": self.max_minutes is None or self.max_minutes > 0,
-                "num_threads": self.num_threads is None or self.num_threads >= 1,
             },
         )
 
@@ -238,11 +232,7 @@ def train(
                 loss, parts = depth_loss(
                     log_pred, depth, valid, cfg.si_lambda, cfg.grad_weight, cfg.grad_scales
                 )
-                loss_value = check_loss(loss, f"epoch {epoch}, step {s + 1}", cfg.lr)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                sched.step()
+                loss_value = take_step(opt, sched, loss, f"epoch {epoch}, step {s + 1}", cfg.lr)
                 means.add(loss_value, parts)
             check_weights(net, f"epoch {epoch}", cfg.lr)
             row = means.pop()
