@@ -14,6 +14,7 @@ from pathlib import Path
 
 import trimesh
 
+from chisel.cli.args import trainer_options
 from chisel.cli.provenance import canonical_command, environment, finetune_info, write_summary
 from chisel.core.errors import InvalidInputError
 from chisel.depth.change_aware import (
@@ -80,15 +81,7 @@ def train(args: argparse.Namespace) -> int:
     pairs = build_prior_set(train_refs, frame_step=args.frame_step)
     val_pairs = build_prior_set(val_refs, frame_step=args.frame_step) if val_refs else None
     net_config = ChangeNetConfig(widths=args.widths or ChangeNetConfig().widths)
-    cfg = ChangeTrainConfig(
-        steps=args.steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
-        max_minutes=args.max_minutes,
-        num_threads=args.threads,
-        device=args.device,
-    )
+    cfg = ChangeTrainConfig(steps=args.steps, max_minutes=args.max_minutes, **trainer_options(args))
     result = train_change_aware(pairs, cfg, net_config, val_pairs=val_pairs, progress=True)
     info = {
         "kind": "train",
@@ -143,14 +136,7 @@ def finetune(args: argparse.Namespace) -> int:
             cat("rgb"), cat("prior_mm"), cat("target_mm"), cat("changed"),
             sum((p.sources for p, _ in parts), []),
         )  # fmt: skip
-    cfg = ChangeTrainConfig.finetune_defaults(
-        steps=args.steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
-        num_threads=args.threads,
-        device=args.device,
-    )
+    cfg = ChangeTrainConfig.finetune_defaults(steps=args.steps, **trainer_options(args))
     result = train_change_aware(pairs, cfg, init=net, progress=True)
     info = finetune_info(
         canonical_command(args, FINETUNE_OPTS),
@@ -158,9 +144,8 @@ def finetune(args: argparse.Namespace) -> int:
         parent_info,
         [str(s.path) for s in seqs],
         len(pairs),
-        cfg.to_dict(),
-        result.seconds,
-        result.history,
+        cfg,
+        result,
         target=targets,
     )
     save_change_checkpoint(args.out, result.net, info)

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from chisel.cli.args import Output, finite_float
+from chisel.cli.args import Output, finite_float, trainer_options
 from chisel.cli.provenance import (
     canonical_command,
     environment,
@@ -150,13 +150,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     )
     cfg = TrainConfig(
         epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
         augment=None if args.no_augment else AugmentConfig(),
         max_minutes=args.max_minutes,
-        num_threads=args.threads,
-        device=args.device,
+        **trainer_options(args),
     )
     result = train(frames, cfg, net_config, val_frames=val_frames, progress=True)
     info = {
@@ -216,12 +212,8 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
     frames = load_frames(refs, size=None, frame_step=args.frame_step)
     cfg = TrainConfig.finetune_defaults(
         epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
         augment=None if args.no_augment else AugmentConfig(),
-        num_threads=args.threads,
-        device=args.device,
+        **trainer_options(args),
     )
     result = train(frames, cfg, init=net, progress=True)
     info = finetune_info(
@@ -230,9 +222,8 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
         parent_info,
         [str(r.path) for r in refs],
         len(frames),
-        cfg.to_dict(),
-        result.seconds,
-        result.history,
+        cfg,
+        result,
     )
     save_checkpoint(Path(args.out), result.net, info)
     write_summary(

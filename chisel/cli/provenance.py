@@ -13,7 +13,7 @@ import shlex
 import sys
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 
@@ -60,20 +60,31 @@ def environment() -> dict[str, Any]:
     }
 
 
+class _Config(Protocol):
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+class _Run(Protocol):
+    @property
+    def seconds(self) -> float: ...
+    @property
+    def history(self) -> list[dict[str, float]]: ...
+
+
 def finetune_info(
     command: str,
     parent: Path,
     parent_info: Mapping[str, Any],
     sequences: list[str],
     num_train_frames: int,
-    train_config: dict[str, Any],
-    seconds: float,
-    history: list[dict[str, float]],
+    cfg: _Config,
+    result: _Run,
     target: list[str] | None = None,
 ) -> dict[str, Any]:
     """The sidecar of a fine-tuned checkpoint: its parent (path, hash, the parent's own
-    record less its history) and the fine-tuning run. ``target``: what the change-aware
-    network was fine-tuned towards (None for the monocular network, which has one)."""
+    record less its history) and the fine-tuning run (config, wall time, history).
+    ``target``: what the change-aware network was fine-tuned towards (None for the
+    monocular network, which has one target)."""
     info: dict[str, Any] = {"kind": "finetune", "command": command}
     if target is not None:
         info["target"] = target
@@ -83,13 +94,13 @@ def finetune_info(
         "parent_info": {k: v for k, v in parent_info.items() if k != "history"},
         "finetune_sequences": sequences,
         "num_train_frames": num_train_frames,
-        "train_config": train_config,
-        "train_seconds": round(seconds, 1),
-        "history": history,
+        "train_config": cfg.to_dict(),
+        "train_seconds": round(result.seconds, 1),
+        "history": result.history,
         "environment": environment(),
     }
 
 
 def write_summary(doc: Mapping[str, Any]) -> None:
-    """The command's result as one JSON line on stdout (the workflow parses it)."""
+    """The command's result as one JSON line on stdout (for scripts and the logs)."""
     sys.stdout.write(json.dumps(doc) + "\n")
