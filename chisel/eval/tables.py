@@ -7,7 +7,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -246,6 +246,20 @@ def metrics_to_csv(metrics: Mapping[str, Any]) -> str:
     return buf.getvalue()
 
 
+def _step_method_grid(
+    steps: Sequence[Mapping[str, Any]],
+    methods: list[str],
+    cell: Callable[[Mapping[str, Any]], str],
+) -> list[str]:
+    """Markdown lines of a step x method table; ``cell`` formats a method's entry of a
+    step, "-" where the step has none."""
+    lines = ["| step | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for s in steps:
+        cells = ["-" if s["methods"].get(m) is None else cell(s["methods"][m]) for m in methods]
+        lines.append(f"| {s['label']} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
     """Two Markdown tables: the paper's (mean ± std (n) per step x method) and surface metrics."""
     methods = table_methods(metrics)
@@ -253,17 +267,12 @@ def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
     lines += [
         "Correspondence error, mm: mean ± std (n points) of same-pixel distances inside the ROI box.",
         "",
-        "| step | " + " | ".join(methods) + " |",
-        "|---|" + "---|" * len(methods),
     ]
-    for s in metrics["steps"]:
-        cells = []
-        for m in methods:
-            c = s["methods"].get(m)
-            cells.append(
-                "-" if c is None else f"{c['mean_mm']:.3f} ± {c['std_mm']:.3f} (n={c['n_points']})"
-            )
-        lines.append(f"| {s['label']} | " + " | ".join(cells) + " |")
+    lines += _step_method_grid(
+        metrics["steps"],
+        methods,
+        lambda c: f"{c['mean_mm']:.3f} ± {c['std_mm']:.3f} (n={c['n_points']})",
+    )
     surf_keys = (
         "accuracy_mm",
         "completeness_mm",
@@ -395,25 +404,19 @@ def seeds_to_csv(agg: Mapping[str, Any]) -> str:
 
 def seeds_to_markdown(agg: Mapping[str, Any]) -> str:
     """Markdown: the correspondence error per step x method, mean ± std across inputs."""
-    names: set[str] = set()
-    for s in agg["steps"]:
-        names |= set(s["methods"])
-    methods = _method_order(names)
+    methods = table_methods(agg)
     lines = [
         f"# Evaluation across {len(agg['inputs'])} runs: {agg['experiment']}",
         "",
         "Correspondence error, mm: mean over runs of the per-run mean ± std over runs (runs).",
         "",
-        "| step | " + " | ".join(methods) + " |",
-        "|---|" + "---|" * len(methods),
     ]
-    for s in agg["steps"]:
-        cells = []
-        for m in methods:
-            c = s["methods"].get(m)
-            v = None if c is None else c["mean_mm"]
-            cells.append("-" if v is None else f"{v['mean']:.3f} ± {v['std']:.3f} ({v['n']})")
-        lines.append(f"| {s['label']} | " + " | ".join(cells) + " |")
+
+    def cell(c: Mapping[str, Any]) -> str:
+        v = c["mean_mm"]
+        return "-" if v is None else f"{v['mean']:.3f} ± {v['std']:.3f} ({v['n']})"
+
+    lines += _step_method_grid(agg["steps"], methods, cell)
     return "\n".join(lines) + "\n"
 
 
