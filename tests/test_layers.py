@@ -21,10 +21,7 @@ MAX_FUNCTION_LINES = 120
 # Still over the size goals of the issue on the house: these lists only shrink, and a
 # module or function that gets under its goal must leave them (the test then says so).
 OVERSIZED_MODULES: set[str] = set()
-LONG_FUNCTIONS = {
-    "chisel/cli/cmd_depth.py:register",
-    "chisel/cli/cmd_model.py:register",
-}
+LONG_FUNCTIONS: set[str] = set()
 
 
 def _module_name(path: Path) -> str:

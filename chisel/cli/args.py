@@ -1,4 +1,5 @@
-"""Command-line outputs that may not overwrite the command's inputs or one another.
+"""Command-line outputs that may not overwrite the command's inputs or one another (and
+:func:`trainer_options`, the training options both depth networks' configs take).
 
 An argument declared with ``action=Output`` is something the command writes. Before the
 command runs, :func:`check_outputs` refuses an output that is an input given on the same
@@ -113,3 +114,15 @@ def check_outputs(args: argparse.Namespace) -> None:
                     f"{o} lies inside the input folder {option} {inp}: "
                     "write outputs outside the inputs",
                 )
+
+
+def trainer_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``chisel depth train|finetune`` options that both trainers' configs take
+    (``TrainConfig``, ``ChangeTrainConfig``), as their keyword arguments."""
+    return {
+        "batch_size": args.batch_size,
+        "lr": args.lr,
+        "seed": args.seed,
+        "num_threads": args.threads,
+        "device": args.device,
+    }

@@ -1,24 +1,21 @@
 """``chisel depth train|finetune|export --kind change-aware``: the change-aware network.
 
 Thin wrappers: read the dataset / sequence / mesh, call :mod:`chisel.depth.change_train`,
-write the checkpoint (``kind: change-aware``) with the exact command that reproduces it.
-Called by ``chisel.cli.cmd_depth`` (which hands over the canonical command line and the
-environment; this module does not import it back).
+write the checkpoint (``kind: change-aware``) with the exact command that reproduces it
+(:mod:`chisel.cli.provenance`, as the monocular commands). Called by
+``chisel.cli.cmd_depth``, which owns the parser; this module does not import it back.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 import logging
-import sys
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 import trimesh
 
+from chisel.cli.args import trainer_options
+from chisel.cli.provenance import canonical_command, environment, finetune_info, write_summary
 from chisel.core.errors import InvalidInputError
 from chisel.depth.change_aware import (
     ChangeAwarePredictor,
@@ -29,6 +26,7 @@ from chisel.depth.change_aware import (
 )
 from chisel.depth.change_source import export_change_aware
 from chisel.depth.change_train import ChangeTrainConfig, train_change_aware
+from chisel.depth.data import held_out_groups
 from chisel.depth.prior_data import (
     build_prior_set,
     check_change_training_seeds,
@@ -71,49 +69,23 @@ FINETUNE_OPTS = [
 ]
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def _split_seeds(seeds: list[int], val_fraction: float, seed: int) -> set[int]:
-    if not 0.0 <= val_fraction < 1.0:
-        raise InvalidInputError("--val-fraction", f"must be in [0, 1), got {val_fraction}")
-    n_val = 0
-    if val_fraction > 0 and len(seeds) >= 2:
-        n_val = min(len(seeds) - 1, max(1, round(val_fraction * len(seeds))))
-    rng = np.random.default_rng(seed)
-    return set(rng.choice(seeds, size=n_val, replace=False).tolist()) if n_val else set()
-
-
-def train(args: argparse.Namespace, command: str, environment: dict[str, Any]) -> int:
-    """``chisel depth train --kind change-aware``; command : the canonical command line."""
-    refs = read_step_dataset(args.data)
+def train(args: argparse.Namespace) -> int:
+    """``chisel depth train --kind change-aware``."""
+    refs = read_step_dataset(args.data, args.allow_outside_manifest)
     check_change_training_seeds(refs)
     seeds = sorted({r.seed for r in refs})
-    val_seeds = _split_seeds(seeds, args.val_fraction, args.seed)
+    val_seeds = held_out_groups(seeds, args.val_fraction, args.seed)
     train_refs = [r for r in refs if r.seed not in val_seeds]
     val_refs = [r for r in refs if r.seed in val_seeds]
     log.info("train seeds %s, validation seeds %s", sorted(set(seeds) - val_seeds), val_seeds)
     pairs = build_prior_set(train_refs, frame_step=args.frame_step)
     val_pairs = build_prior_set(val_refs, frame_step=args.frame_step) if val_refs else None
     net_config = ChangeNetConfig(widths=args.widths or ChangeNetConfig().widths)
-    cfg = ChangeTrainConfig(
-        steps=args.steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
-        max_minutes=args.max_minutes,
-        num_threads=args.threads,
-        device=args.device,
-    )
+    cfg = ChangeTrainConfig(steps=args.steps, max_minutes=args.max_minutes, **trainer_options(args))
     result = train_change_aware(pairs, cfg, net_config, val_pairs=val_pairs, progress=True)
     info = {
         "kind": "train",
-        "command": command,
+        "command": canonical_command(args, TRAIN_OPTS),
         "train_phantom_seeds": sorted(set(seeds) - val_seeds),
         "val_phantom_seeds": sorted(val_seeds),
         "train_sequences": [str(r.path) for r in train_refs],
@@ -129,15 +101,15 @@ def train(args: argparse.Namespace, command: str, environment: dict[str, Any]) -
         "train_seconds": round(result.seconds, 1),
         "history": result.history,
         "note": args.note,
-        "environment": environment,
+        "environment": environment(),
     }
     save_change_checkpoint(args.out, result.net, info)
     summary = {"checkpoint": str(args.out), "val_metrics": result.val_metrics}
-    sys.stdout.write(json.dumps(summary | {"train_seconds": info["train_seconds"]}) + "\n")
+    write_summary(summary | {"train_seconds": info["train_seconds"]})
     return 0
 
 
-def finetune(args: argparse.Namespace, command: str, environment: dict[str, Any]) -> int:
+def finetune(args: argparse.Namespace) -> int:
     """``chisel depth finetune --kind change-aware --mesh CT_SURFACE``."""
     if args.mesh is None:
         raise InvalidInputError(
@@ -164,34 +136,21 @@ def finetune(args: argparse.Namespace, command: str, environment: dict[str, Any]
             cat("rgb"), cat("prior_mm"), cat("target_mm"), cat("changed"),
             sum((p.sources for p, _ in parts), []),
         )  # fmt: skip
-    cfg = ChangeTrainConfig.finetune_defaults(
-        steps=args.steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
-        num_threads=args.threads,
-        device=args.device,
-    )
+    cfg = ChangeTrainConfig.finetune_defaults(steps=args.steps, **trainer_options(args))
     result = train_change_aware(pairs, cfg, init=net, progress=True)
-    info = {
-        "kind": "finetune",
-        "command": command,
-        "target": targets,
-        "parent_checkpoint": str(parent),
-        "parent_sha256": _sha256(parent),
-        "parent_info": {k: v for k, v in parent_info.items() if k != "history"},
-        "finetune_sequences": [str(s.path) for s in seqs],
-        "num_train_frames": len(pairs),
-        "train_config": cfg.to_dict(),
-        "train_seconds": round(result.seconds, 1),
-        "history": result.history,
-        "environment": environment,
-    }
+    info = finetune_info(
+        canonical_command(args, FINETUNE_OPTS),
+        parent,
+        parent_info,
+        [str(s.path) for s in seqs],
+        len(pairs),
+        cfg,
+        result,
+        target=targets,
+    )
     save_change_checkpoint(args.out, result.net, info)
     final = result.history[-1]["loss"] if result.history else None
-    sys.stdout.write(
-        json.dumps({"checkpoint": str(args.out), "target": targets, "final_loss": final}) + "\n"
-    )
+    write_summary({"checkpoint": str(args.out), "target": targets, "final_loss": final})
     return 0
 
 
@@ -199,5 +158,5 @@ def export(args: argparse.Namespace) -> int:
     """``chisel depth export --kind change-aware``: TorchScript only."""
     net, _ = load_change_checkpoint(args.checkpoint)
     out = export_change_aware(ChangeAwarePredictor(net), args.out)
-    sys.stdout.write(json.dumps({"exported": str(out), "kind": "change-aware"}) + "\n")
+    write_summary({"exported": str(out), "kind": "change-aware"})
     return 0

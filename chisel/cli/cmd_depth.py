@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 import logging
-import platform
-import shlex
-import sys
 from pathlib import Path
-from typing import Any
 
-import torch
-
-from chisel.cli.args import Output, finite_float
+from chisel.cli.args import Output, finite_float, trainer_options
+from chisel.cli.provenance import (
+    canonical_command,
+    environment,
+    finetune_info,
+    sha256_file,
+    write_summary,
+)
 from chisel.core.errors import InvalidInputError
 from chisel.depth import (
     DEFAULT_CHECKPOINT,
@@ -100,46 +99,6 @@ def _ints(text: str) -> tuple[int, ...]:
         ) from None
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def _canonical_command(args: argparse.Namespace, names: list[str]) -> str:
-    """The command line that reproduces this run, every option spelled out."""
-    words = ["chisel", "depth", args.depth_command]
-    for name in names:
-        value = getattr(args, name)
-        flag = "--" + name.replace("_", "-")
-        if isinstance(value, bool):
-            if value:
-                words.append(flag)
-        elif value is None:
-            continue
-        elif isinstance(value, list):
-            words += [flag, *(str(v) for v in value)]
-        elif isinstance(value, tuple):
-            if name == "size":
-                words += [flag, f"{value[0]}x{value[1]}"]
-            else:
-                words += [flag, ",".join(str(v) for v in value)]
-        else:
-            words += [flag, str(value)]
-    return shlex.join(words)
-
-
-def _environment() -> dict[str, Any]:
-    return {
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "machine": platform.machine(),
-        "threads": torch.get_num_threads(),
-    }
-
-
 def _seeds(refs: list[SequenceRef]) -> list[int]:
     return sorted({r.seed for r in refs if r.seed is not None})
 
@@ -168,8 +127,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if _change_aware(args):
         from chisel.cli import cmd_change_aware  # noqa: PLC0415 - torch-heavy, only when asked
 
-        opts = cmd_change_aware.TRAIN_OPTS
-        return cmd_change_aware.train(args, _canonical_command(args, opts), _environment())
+        return cmd_change_aware.train(args)
     out = Path(args.out)
     refs = find_sequences(args.data, args.allow_outside_manifest)
     check_training_seeds(refs)
@@ -192,18 +150,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
     )
     cfg = TrainConfig(
         epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
         augment=None if args.no_augment else AugmentConfig(),
         max_minutes=args.max_minutes,
-        num_threads=args.threads,
-        device=args.device,
+        **trainer_options(args),
     )
     result = train(frames, cfg, net_config, val_frames=val_frames, progress=True)
     info = {
         "kind": "train",
-        "command": _canonical_command(args, _TRAIN_OPTS),
+        "command": canonical_command(args, _TRAIN_OPTS),
         "train_phantom_seeds": _seeds(train_refs),
         "val_phantom_seeds": _seeds(val_refs),
         "train_sequences": [str(r.path) for r in train_refs],
@@ -219,18 +173,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
         "train_cpu_seconds": round(result.cpu_seconds, 1),
         "history": result.history,
         "note": args.note,
-        "environment": _environment(),
+        "environment": environment(),
     }
     save_checkpoint(out, result.net, info)
-    sys.stdout.write(
-        json.dumps(
-            {
-                "checkpoint": str(out),
-                "val_metrics": info["val_metrics"],
-                "train_seconds": info["train_seconds"],
-            }
-        )
-        + "\n"
+    write_summary(
+        {
+            "checkpoint": str(out),
+            "val_metrics": info["val_metrics"],
+            "train_seconds": info["train_seconds"],
+        }
     )
     return 0
 
@@ -254,45 +205,33 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
     if _change_aware(args):
         from chisel.cli import cmd_change_aware  # noqa: PLC0415 - torch-heavy, only when asked
 
-        opts = cmd_change_aware.FINETUNE_OPTS
-        return cmd_change_aware.finetune(args, _canonical_command(args, opts), _environment())
+        return cmd_change_aware.finetune(args)
     parent = Path(args.checkpoint)
     net, parent_info = load_checkpoint(parent)
     refs = [SequenceRef(Path(p), None) for p in args.sequence]
     frames = load_frames(refs, size=None, frame_step=args.frame_step)
     cfg = TrainConfig.finetune_defaults(
         epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
         augment=None if args.no_augment else AugmentConfig(),
-        num_threads=args.threads,
-        device=args.device,
+        **trainer_options(args),
     )
     result = train(frames, cfg, init=net, progress=True)
-    info = {
-        "kind": "finetune",
-        "command": _canonical_command(args, _FINETUNE_OPTS),
-        "parent_checkpoint": str(parent),
-        "parent_sha256": _sha256(parent),
-        "parent_info": {k: v for k, v in parent_info.items() if k != "history"},
-        "finetune_sequences": [str(r.path) for r in refs],
-        "num_train_frames": len(frames),
-        "train_config": cfg.to_dict(),
-        "train_seconds": round(result.seconds, 1),
-        "history": result.history,
-        "environment": _environment(),
-    }
+    info = finetune_info(
+        canonical_command(args, _FINETUNE_OPTS),
+        parent,
+        parent_info,
+        [str(r.path) for r in refs],
+        len(frames),
+        cfg,
+        result,
+    )
     save_checkpoint(Path(args.out), result.net, info)
-    sys.stdout.write(
-        json.dumps(
-            {
-                "checkpoint": args.out,
-                "train_seconds": info["train_seconds"],
-                "final_loss": result.history[-1]["loss"],
-            }
-        )
-        + "\n"
+    write_summary(
+        {
+            "checkpoint": args.out,
+            "train_seconds": info["train_seconds"],
+            "final_loss": result.history[-1]["loss"],
+        }
     )
     return 0
 
@@ -301,9 +240,9 @@ def _cmd_predict(args: argparse.Namespace) -> int:
     ck = Path(args.checkpoint)
     source = load_depth_source(ck, device=args.device)
     seq = Sequence(args.sequence)
-    meta = {"model": str(ck), "model_sha256": _sha256(ck), "relative_depth": True}
+    meta = {"model": str(ck), "model_sha256": sha256_file(ck), "relative_depth": True}
     predict_sequence(source, seq, args.out, meta=meta, progress=True)
-    sys.stdout.write(json.dumps({"sequence": args.out, "frames": len(seq)}) + "\n")
+    write_summary({"sequence": args.out, "frames": len(seq)})
     return 0
 
 
@@ -311,8 +250,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     source = load_depth_source(args.checkpoint, device=args.device)
     refs = find_sequences(args.data, args.allow_outside_manifest)
     metrics = evaluate_source(source, [Sequence(r.path) for r in refs])
-    doc = {"checkpoint": str(args.checkpoint), "sequences": len(refs), **metrics.to_dict()}
-    sys.stdout.write(json.dumps(doc) + "\n")
+    write_summary({"checkpoint": str(args.checkpoint), "sequences": len(refs), **metrics.to_dict()})
     return 0
 
 
@@ -323,7 +261,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         return cmd_change_aware.export(args)
     net, _ = load_checkpoint(args.checkpoint)
     out = export_model(DepthPredictor(net), args.out)
-    sys.stdout.write(json.dumps({"exported": str(out)}) + "\n")
+    write_summary({"exported": str(out)})
     return 0
 
 
@@ -336,54 +274,75 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = p.add_subparsers(dest="depth_command", metavar="SUBCOMMAND", required=True)
+    _add_train(sub)
+    _add_finetune(sub)
+    _add_predict(sub)
+    _add_evaluate(sub)
+    _add_export(sub)
 
-    def common(q: argparse.ArgumentParser) -> None:
-        q.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N")
 
-    def training(q: argparse.ArgumentParser, epochs: int, lr: float) -> None:
-        q.add_argument(
-            "--epochs", type=int, default=epochs, help=f"passes over the frames (default {epochs})"
-        )
-        q.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
-        q.add_argument(
-            "--lr", type=finite_float, default=lr, help=f"peak learning rate (default {lr:g})"
-        )
-        q.add_argument(
-            "--seed", type=int, default=0, help="seeds init, split, shuffling, augmentation"
-        )
-        q.add_argument("--frame-step", type=int, default=1, help="use every N-th frame (default 1)")
-        q.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
-        q.add_argument("--no-augment", action="store_true", help="no flips / colour jitter")
-        kind(q)
-        q.add_argument(
-            "--steps",
-            type=int,
-            default=None,
-            help="change-aware only: optimisation steps (default 600 train, 60 finetune)",
-        )
-        common(q)
+def _add_device(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N")
 
-    def kind(q: argparse.ArgumentParser) -> None:
-        q.add_argument(
-            "--kind",
-            choices=_KINDS,
-            default="monocular",
-            help="monocular (default): relative depth from RGB; change-aware: RGB + the "
-            "model's render at the tracked pose -> metric depth (mm)",
-        )
 
-    t = sub.add_parser("train", help="train from scratch on rendered sequences")
-    t.add_argument(
+def _add_kind(q: argparse.ArgumentParser) -> None:
+    q.add_argument(
+        "--kind",
+        choices=_KINDS,
+        default="monocular",
+        help="monocular (default): relative depth from RGB; change-aware: RGB + the "
+        "model's render at the tracked pose -> metric depth (mm)",
+    )
+
+
+def _add_data(q: argparse.ArgumentParser) -> None:
+    q.add_argument(
         "--data",
         nargs="+",
         required=True,
         help="dataset folders (dataset.json), dataset.json files or sequence folders",
     )
-    t.add_argument(
+    q.add_argument(
         "--allow-outside-manifest",
         action="store_true",
         help="let a dataset.json name sequence folders outside its own folder",
     )
+
+
+def _add_shipped_checkpoint(q: argparse.ArgumentParser) -> None:
+    q.add_argument(
+        "--checkpoint",
+        default=str(DEFAULT_CHECKPOINT),
+        help="checkpoint (.pt) or TorchScript export (default: the shipped model)",
+    )
+
+
+def _add_training(q: argparse.ArgumentParser, epochs: int, lr: float) -> None:
+    """The options train and finetune share; only the defaults of the two differ."""
+    q.add_argument(
+        "--epochs", type=int, default=epochs, help=f"passes over the frames (default {epochs})"
+    )
+    q.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
+    q.add_argument(
+        "--lr", type=finite_float, default=lr, help=f"peak learning rate (default {lr:g})"
+    )
+    q.add_argument("--seed", type=int, default=0, help="seeds init, split, shuffling, augmentation")
+    q.add_argument("--frame-step", type=int, default=1, help="use every N-th frame (default 1)")
+    q.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    q.add_argument("--no-augment", action="store_true", help="no flips / colour jitter")
+    _add_kind(q)
+    q.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="change-aware only: optimisation steps (default 600 train, 60 finetune)",
+    )
+    _add_device(q)
+
+
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    t = sub.add_parser("train", help="train from scratch on rendered sequences")
+    _add_data(t)
     t.add_argument(
         "--out",
         required=True,
@@ -391,7 +350,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action=Output,
         sidecar=_checkpoint_sidecar,
     )
-    training(t, epochs=30, lr=2e-3)
+    _add_training(t, epochs=30, lr=2e-3)
     t.add_argument(
         "--val-fraction",
         type=finite_float,
@@ -421,6 +380,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     t.set_defaults(func=_cmd_train)
 
+
+def _add_finetune(sub: argparse._SubParsersAction) -> None:
     f = sub.add_parser("finetune", help="fine-tune on a preoperative sequence (depth = CT render)")
     f.add_argument("--checkpoint", required=True, help="checkpoint to start from (.pt)")
     f.add_argument(
@@ -436,7 +397,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action=Output,
         sidecar=_checkpoint_sidecar,
     )
-    training(f, epochs=3, lr=1e-4)
+    _add_training(f, epochs=3, lr=1e-4)
     f.add_argument(
         "--mesh",
         default=None,
@@ -444,43 +405,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     f.set_defaults(func=_cmd_finetune)
 
+
+def _add_predict(sub: argparse._SubParsersAction) -> None:
     pr = sub.add_parser("predict", help="write a new sequence with predicted depth")
-    pr.add_argument(
-        "--checkpoint",
-        default=str(DEFAULT_CHECKPOINT),
-        help="checkpoint (.pt) or TorchScript export (default: the shipped model)",
-    )
+    _add_shipped_checkpoint(pr)
     pr.add_argument("--sequence", required=True, help="input sequence folder (needs RGB)")
     pr.add_argument(
         "--out", required=True, help="new sequence folder to write (atomically)", action=Output
     )
-    common(pr)
+    _add_device(pr)
     pr.set_defaults(func=_cmd_predict)
 
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="median-scaled metrics against sequences' own depth")
-    e.add_argument(
-        "--checkpoint",
-        default=str(DEFAULT_CHECKPOINT),
-        help="checkpoint (.pt) or TorchScript export (default: the shipped model)",
-    )
-    e.add_argument(
-        "--data",
-        nargs="+",
-        required=True,
-        help="dataset folders (dataset.json), dataset.json files or sequence folders",
-    )
-    e.add_argument(
-        "--allow-outside-manifest",
-        action="store_true",
-        help="let a dataset.json name sequence folders outside its own folder",
-    )
-    common(e)
+    _add_shipped_checkpoint(e)
+    _add_data(e)
+    _add_device(e)
     e.set_defaults(func=_cmd_evaluate)
 
+
+def _add_export(sub: argparse._SubParsersAction) -> None:
     x = sub.add_parser("export", help="export to TorchScript (.pt) or ONNX (.onnx)")
     x.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT), help="checkpoint (.pt)")
     x.add_argument(
         "--out", required=True, help="model.pt (TorchScript) or model.onnx", action=Output
     )
-    kind(x)
+    _add_kind(x)
     x.set_defaults(func=_cmd_export)

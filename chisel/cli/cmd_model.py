@@ -36,17 +36,40 @@ Formats and units:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "ct-surface",
-        help="turn a CT segmentation (NIfTI or mesh) into a surface mesh in world mm",
-        description="Contour a CT volume (marching cubes) or re-save a mesh, in world mm.\n\n"
-        + _FORMATS,
-        formatter_class=_FMT,
+    """Add ``chisel ct-surface | build | update | mesh | render-depth``."""
+    _add_ct_surface(sub)
+    _add_build(sub)
+    _add_update(sub)
+    _add_mesh(sub)
+    _add_render_depth(sub)
+
+
+def _parser(
+    sub: argparse._SubParsersAction, name: str, summary: str, description: str
+) -> argparse.ArgumentParser:
+    """A command's parser (``summary``: its line in ``chisel --help``); its description
+    ends with the formats and units."""
+    parser: argparse.ArgumentParser = sub.add_parser(
+        name, help=summary, description=description + _FORMATS, formatter_class=_FMT
     )
-    p.add_argument("--ct", required=True, type=Path, help="NIfTI volume or surface mesh")
+    return parser
+
+
+def _add_mesh_out(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out", required=True, type=Path, help="output mesh (.ply/.stl/.obj)", action=Output
     )
+
+
+def _add_ct_surface(sub: argparse._SubParsersAction) -> None:
+    p = _parser(
+        sub,
+        "ct-surface",
+        summary="turn a CT segmentation (NIfTI or mesh) into a surface mesh in world mm",
+        description="Contour a CT volume (marching cubes) or re-save a mesh, in world mm.\n\n",
+    )
+    p.add_argument("--ct", required=True, type=Path, help="NIfTI volume or surface mesh")
+    _add_mesh_out(p)
     p.add_argument(
         "--kind",
         choices=("auto", "intensity", "label"),
@@ -61,9 +84,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_cmd_ct_surface)
 
-    p = sub.add_parser(
+
+def _add_build(sub: argparse._SubParsersAction) -> None:
+    p = _parser(
+        sub,
         "build",
-        help="build the preoperative TSDF model from the CT (whole CT or the preop sweep)",
+        summary="build the preoperative TSDF model from the CT (whole CT or the preop sweep)",
         description="Two builds (the model file records which, field `build`):\n"
         "  --from-ct CT   (default in the workflow) every voxel the CT covers takes the CT's "
         "signed distance\n"
@@ -75,8 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "  --surface CT   the paper's build: the CT surface rendered at every tracked preop "
         "pose, fused\n"
         "                 (Curless-Levoy, free space carved); nothing behind what the sweep "
-        "sees.\n\n" + _FORMATS,
-        formatter_class=_FMT,
+        "sees.\n\n",
     )
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument(
@@ -138,14 +163,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_build)
 
-    p = sub.add_parser(
+
+def _add_update(sub: argparse._SubParsersAction) -> None:
+    p = _parser(
+        sub,
         "update",
-        help="apply one surgical step (a sequence) to a model: detect change, carve it",
+        summary="apply one surgical step (a sequence) to a model: detect change, carve it",
         description="Detect the tissue removed in a new sequence and carve it into the model "
         "(the paper's masked TSDF update). Writes the new model and a JSON report "
         "(frames used/skipped, registration transform/fitness, changed-pixel fraction). "
-        "The input model file is never modified; on any error nothing is written.\n\n" + _FORMATS,
-        formatter_class=_FMT,
+        "The input model file is never modified; on any error nothing is written.\n\n",
     )
     p.add_argument("--model", required=True, type=Path, help="model of the previous step")
     p.add_argument("--sequence", required=True, type=Path, help="sequence of this step")
@@ -208,26 +235,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_update)
 
-    p = sub.add_parser(
+
+def _add_mesh(sub: argparse._SubParsersAction) -> None:
+    p = _parser(
+        sub,
         "mesh",
-        help="extract the surface of a model (marching cubes at D = 0), world mm",
-        description="Marching cubes at D = 0 over observed voxels; vertices in world mm.\n\n"
-        + _FORMATS,
-        formatter_class=_FMT,
+        summary="extract the surface of a model (marching cubes at D = 0), world mm",
+        description="Marching cubes at D = 0 over observed voxels; vertices in world mm.\n\n",
     )
     p.add_argument("--model", required=True, type=Path, help="model file (.npz)")
-    p.add_argument(
-        "--out", required=True, type=Path, help="output mesh (.ply/.stl/.obj)", action=Output
-    )
+    _add_mesh_out(p)
     p.set_defaults(func=_cmd_mesh)
 
-    p = sub.add_parser(
+
+def _add_render_depth(sub: argparse._SubParsersAction) -> None:
+    p = _parser(
+        sub,
         "render-depth",
-        help="render z-depth of a model or mesh at every pose of a sequence",
+        summary="render z-depth of a model or mesh at every pose of a sequence",
         description="Render z-depth (mm) of a model's surface (--model) or of a mesh (--mesh) "
         "at the tracked poses of a sequence; writes a sequence folder with the same "
-        "camera, poses, RGB and masks, and the rendered depth.\n\n" + _FORMATS,
-        formatter_class=_FMT,
+        "camera, poses, RGB and masks, and the rendered depth.\n\n",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--model", type=Path, help="model file (.npz)")

@@ -29,9 +29,18 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from chisel.core.errors import InvalidInputError, TrainingDivergedError
+from chisel.core.errors import InvalidInputError
 from chisel.depth.change_aware import ChangeAwarePredictor, ChangeNet, ChangeNetConfig
-from chisel.depth.checkpoint import nonfinite_tensors
+from chisel.depth.optim import (
+    BestWeights,
+    RunningMeans,
+    check_config,
+    check_weights,
+    optimizer,
+    out_of_time,
+    set_train_mode,
+    take_step,
+)
 from chisel.depth.train import deterministic, resolve_device
 
 log = logging.getLogger(__name__)
@@ -108,24 +117,16 @@ class ChangeTrainConfig:
     """Torch device: "cpu", "cuda", "cuda:1", ..."""
 
     def __post_init__(self) -> None:
-        checks = {
-            "steps": self.steps >= 1,
-            "batch_size": self.batch_size >= 1,
-            "lr": self.lr > 0 and math.isfinite(self.lr),
-            "weight_decay": self.weight_decay >= 0,
-            "warmup_fraction": 0.0 <= self.warmup_fraction < 1.0,
-            "change_weight": self.change_weight >= 0,
-            "bce_weight": self.bce_weight >= 0,
-            "photometric": 0.0 <= self.photometric < 1.0,
-            "max_minutes": self.max_minutes is None or self.max_minutes > 0,
-            "eval_every": self.eval_every >= 1,
-            "num_threads": self.num_threads is None or self.num_threads >= 1,
-        }
-        for name, ok in checks.items():
-            if not ok:
-                raise InvalidInputError(
-                    f"ChangeTrainConfig.{name}", f"invalid value {getattr(self, name)!r}"
-                )
+        check_config(
+            self,
+            {
+                "steps": self.steps >= 1,
+                "change_weight": self.change_weight >= 0,
+                "bce_weight": self.bce_weight >= 0,
+                "photometric": 0.0 <= self.photometric < 1.0,
+                "eval_every": self.eval_every >= 1,
+            },
+        )
 
     @classmethod
     def finetune_defaults(cls, **overrides: Any) -> ChangeTrainConfig:
@@ -264,14 +265,6 @@ def evaluate_pairs(
     return {"abs_rel_near": n, "abs_rel_unchanged": u, "frames_near": len(near), "score": score}
 
 
-def _set_train_mode(net: ChangeNet, freeze_bn: bool) -> None:
-    net.train()
-    if freeze_bn:
-        for m in net.modules():
-            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-                m.eval()
-
-
 def train_change_aware(
     pairs: PriorSet,
     cfg: ChangeTrainConfig,
@@ -283,7 +276,8 @@ def train_change_aware(
     """Train the change-aware network (from scratch, or a copy of ``init`` to fine-tune).
 
     Batches are drawn by a seeded permutation (epochs without end until ``cfg.steps``).
-    A non-finite loss stops with :class:`TrainingDivergedError`.
+    A non-finite loss (or weights at the end) stops with
+    :class:`~chisel.core.errors.TrainingDivergedError`, as in the monocular trainer.
     """
     if len(pairs) == 0:
         raise InvalidInputError("pairs", "no training frames")
@@ -295,26 +289,17 @@ def train_change_aware(
         predictor = ChangeAwarePredictor(net).to(device)
         n = len(pairs)
         bs = min(cfg.batch_size, n)
-        opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        if cfg.warmup_fraction > 0 and cfg.steps > 1:
-            sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.OneCycleLR(
-                opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=cfg.warmup_fraction
-            )
-        else:
-            sched = torch.optim.lr_scheduler.LambdaLR(
-                opt, lambda s: 0.5 * (1.0 + math.cos(math.pi * min(s, cfg.steps) / cfg.steps))
-            )
+        opt, sched = optimizer(net, cfg.lr, cfg.weight_decay, cfg.warmup_fraction, cfg.steps)
         gen = torch.Generator().manual_seed(cfg.seed)
         perm = torch.randperm(n, generator=gen)
         cursor = 0
         history: list[dict[str, float]] = []
-        best: tuple[float, int, dict[str, torch.Tensor]] | None = None
-        sums = {"loss": 0.0, "depth": 0.0, "bce": 0.0}
-        count = 0
+        best = BestWeights()
+        means = RunningMeans(("loss", "depth", "bce"))
         stopped_early = False
         last_step = 0
         bar = tqdm(range(1, cfg.steps + 1), desc="change-aware train", disable=not progress)
-        _set_train_mode(net, cfg.freeze_batchnorm)
+        set_train_mode(net, cfg.freeze_batchnorm)
         for step in bar:
             if cursor + bs > n:
                 perm, cursor = torch.randperm(n, generator=gen), 0
@@ -327,51 +312,28 @@ def train_change_aware(
             rgb, prior, target, changed = (t.to(device) for t in (rgb, prior, target, changed))
             r, c = predictor.raw(rgb, prior)
             loss, parts = change_loss(r, c, prior, target, changed, cfg)
-            if not bool(torch.isfinite(loss.detach())):
-                raise TrainingDivergedError(
-                    f"change-aware training diverged at step {step}: the loss is "
-                    f"{float(loss.detach())} (learning rate {cfg.lr:g} too high?); nothing saved"
-                )
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            sums["loss"] += float(loss.detach())
-            sums["depth"] += parts["depth"]
-            sums["bce"] += parts["bce"]
-            count += 1
+            means.add(take_step(opt, sched, loss, f"step {step}", cfg.lr), parts)
             last_step = step
-            out_of_time = cfg.max_minutes is not None and (
-                time.perf_counter() - t0 > 60.0 * cfg.max_minutes
-            )
-            if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
-                row: dict[str, float] = {k: v / count for k, v in sums.items()}
+            timed_out = out_of_time(t0, cfg.max_minutes)
+            if step % cfg.eval_every == 0 or step == cfg.steps or timed_out:
+                row = means.pop()
                 row["step"] = step
                 row["lr"] = float(opt.param_groups[0]["lr"])
                 row["seconds"] = time.perf_counter() - t0
-                sums = {k: 0.0 for k in sums}
-                count = 0
                 if val_pairs is not None and len(val_pairs) > 0:
                     m = evaluate_pairs(predictor, val_pairs)
-                    _set_train_mode(net, cfg.freeze_batchnorm)
+                    set_train_mode(net, cfg.freeze_batchnorm)
                     row.update({f"val_{k}": float(v) for k, v in m.items()})
-                    if best is None or m["score"] < best[0]:
-                        state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-                        best = (m["score"], step, state)
+                    best.offer(m["score"], step, net)
                 history.append(row)
                 log.info("step %d/%d %s", step, cfg.steps, {k: round(v, 5) for k, v in row.items()})
                 bar.set_postfix(loss=f"{row['loss']:.4f}")
-            if out_of_time:
+            if timed_out:
                 stopped_early = step < cfg.steps
                 log.warning("max_minutes=%s reached after step %d", cfg.max_minutes, step)
                 break
-        bad = nonfinite_tensors(dict(net.state_dict()))
-        if bad:
-            raise TrainingDivergedError(f"{len(bad)} weight tensor(s) hold NaN/inf after training")
-        best_step = last_step
-        if best is not None:
-            net.load_state_dict(best[2])
-            best_step = best[1]
+        check_weights(net, f"step {last_step}", cfg.lr)
+        best_step = best.restore(net, last=last_step)
         net = net.to("cpu").eval()
         val_metrics = None
         if val_pairs is not None and len(val_pairs) > 0:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -30,6 +30,7 @@ RESERVED_EVAL_SEEDS = range(0, 100)
 
 _SEED_KEYS = ("phantom_seed", "seed")
 _PATH_KEYS = ("path", "sequence", "dir")
+_Group = TypeVar("_Group", int, str)
 
 
 @dataclass(frozen=True)
@@ -128,6 +129,22 @@ def check_training_seeds(refs: list[SequenceRef]) -> None:
         )
 
 
+def held_out_groups(groups: list[_Group], val_fraction: float, seed: int) -> set[_Group]:
+    """The groups (phantom seeds, folders) held out for validation, seeded.
+
+    ``round(val_fraction * len(groups))`` of them, at least 1 when ``val_fraction > 0`` and
+    there are >= 2, never all. ``groups`` must come in a fixed order (sorted): the draw
+    depends on it.
+    """
+    if not 0.0 <= val_fraction < 1.0:
+        raise InvalidInputError("val_fraction", f"must be in [0, 1), got {val_fraction}")
+    n_val = 0
+    if val_fraction > 0 and len(groups) >= 2:
+        n_val = min(len(groups) - 1, max(1, round(val_fraction * len(groups))))
+    rng = np.random.default_rng(seed)
+    return set(rng.choice(groups, size=n_val, replace=False).tolist()) if n_val else set()
+
+
 def split_by_group(
     refs: list[SequenceRef], val_fraction: float, seed: int
 ) -> tuple[list[SequenceRef], list[SequenceRef]]:
@@ -136,14 +153,7 @@ def split_by_group(
     ``round(val_fraction * groups)`` groups (at least 1 when ``val_fraction > 0`` and there
     are >= 2 groups) go to validation.
     """
-    if not 0.0 <= val_fraction < 1.0:
-        raise InvalidInputError("val_fraction", f"must be in [0, 1), got {val_fraction}")
-    groups = sorted({r.group for r in refs})
-    n_val = 0
-    if val_fraction > 0 and len(groups) >= 2:
-        n_val = min(len(groups) - 1, max(1, round(val_fraction * len(groups))))
-    rng = np.random.default_rng(seed)
-    val_groups = set(rng.choice(groups, size=n_val, replace=False).tolist()) if n_val else set()
+    val_groups = held_out_groups(sorted({r.group for r in refs}), val_fraction, seed)
     train = [r for r in refs if r.group not in val_groups]
     val = [r for r in refs if r.group in val_groups]
     return train, val

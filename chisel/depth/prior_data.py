@@ -32,11 +32,10 @@ tissue, unchanged, is the render").
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -45,7 +44,8 @@ import trimesh
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth.change_train import PriorSet
-from chisel.depth.data import DATASET_INDEX, RESERVED_EVAL_SEEDS
+from chisel.depth.data import DATASET_INDEX, SequenceRef, check_training_seeds
+from chisel.io.manifest import named_path, read_json_manifest
 from chisel.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -68,8 +68,15 @@ class StepSequenceRef:
     """Phantom folder (``phantom.json`` and the meshes per step)."""
 
 
-def read_step_dataset(inputs: list[str | Path]) -> list[StepSequenceRef]:
-    """Step sequences of dataset folders (or ``dataset.json`` files) from ``sim dataset``."""
+def read_step_dataset(
+    inputs: list[str | Path], allow_outside: bool = False
+) -> list[StepSequenceRef]:
+    """Step sequences of dataset folders (or ``dataset.json`` files) from ``sim dataset``.
+
+    The index is a manifest like the monocular one (:func:`chisel.depth.data.
+    read_dataset_index`): read through :func:`read_json_manifest`, and every sequence
+    folder it names must lie inside its folder unless ``allow_outside``.
+    """
     if not inputs:
         raise InvalidInputError("--data", "no dataset given")
     refs = []
@@ -77,11 +84,7 @@ def read_step_dataset(inputs: list[str | Path]) -> list[StepSequenceRef]:
         index = Path(item)
         if index.is_dir():
             index = index / DATASET_INDEX
-        try:
-            doc = json.loads(index.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InvalidInputError(index, f"cannot read dataset index: {exc}") from None
-        entries = doc.get("sequences") if isinstance(doc, dict) else None
+        entries = read_json_manifest(index).get("sequences")
         if not isinstance(entries, list) or not entries:
             raise InvalidInputError(index, "expected a non-empty 'sequences' list")
         for i, e in enumerate(entries):
@@ -91,38 +94,44 @@ def read_step_dataset(inputs: list[str | Path]) -> list[StepSequenceRef]:
                     where, "change-aware training needs path, phantom_seed and step per entry "
                     "(a dataset from python -m sim dataset)",
                 )  # fmt: skip
-            seed, step = int(e["phantom_seed"]), int(e["step"])
+            seed = _integer(e["phantom_seed"], "phantom_seed", where)
+            step = _integer(e["step"], "step", where)
+            path = named_path(
+                index, e["path"], f"sequences[{i}]", allow_outside=allow_outside, kind="folder"
+            )
             refs.append(
-                StepSequenceRef(
-                    index.parent / e["path"], seed, step, index.parent / "phantoms" / f"seed_{seed}"
-                )
+                StepSequenceRef(path, seed, step, index.parent / "phantoms" / f"seed_{seed}")
             )
     return refs
 
 
+def _integer(value: Any, what: str, where: str | Path) -> int:
+    """A JSON value as an int, as leniently as ``int()`` (as before), else the error."""
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        raise InvalidInputError(where, f"{what} must be an integer, got {value!r}") from None
+
+
 def check_change_training_seeds(refs: list[StepSequenceRef]) -> None:
     """Raise if a sequence shows a phantom reserved for evaluation (seeds 0-99)."""
-    bad = sorted({r.seed for r in refs if r.seed in RESERVED_EVAL_SEEDS})
-    if bad:
-        raise InvalidInputError(
-            "training data",
-            f"phantom seeds {bad[:10]} are evaluation seeds ({RESERVED_EVAL_SEEDS.start}-"
-            f"{RESERVED_EVAL_SEEDS.stop - 1}); train on seeds >= 1000",
-        )
+    check_training_seeds([SequenceRef(r.path, r.seed) for r in refs])
 
 
 def phantom_step_mesh(phantom_dir: str | Path, step: int) -> trimesh.Trimesh:
     """The surface mesh of surgical step ``step`` of a phantom folder (world mm)."""
-    phantom_dir = Path(phantom_dir)
-    header = phantom_dir / "phantom.json"
-    try:
-        doc = json.loads(header.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InvalidInputError(header, f"cannot read phantom header: {exc}") from None
-    steps = {int(s["step"]): s for s in doc.get("steps", []) if "step" in s and "mesh" in s}
+    header = Path(phantom_dir) / "phantom.json"
+    listed = read_json_manifest(header).get("steps", [])
+    if not isinstance(listed, list):
+        raise InvalidInputError(header, f"'steps' must be a list, got {type(listed).__name__}")
+    steps = {
+        _integer(s["step"], "step", header): s["mesh"]
+        for s in listed
+        if isinstance(s, dict) and "step" in s and "mesh" in s
+    }
     if step not in steps:
         raise InvalidInputError(header, f"no mesh for step {step} (steps: {sorted(steps)})")
-    mesh_path = phantom_dir / steps[step]["mesh"]
+    mesh_path = named_path(header, steps[step], f"steps[step={step}].mesh", kind="file")
     mesh = trimesh.load(mesh_path, force="mesh", process=False)
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InvalidInputError(mesh_path, "not a triangle mesh with faces")

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import logging
-import math
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
@@ -21,12 +20,21 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from chisel.core.errors import InvalidInputError, TrainingDivergedError
-from chisel.depth.checkpoint import nonfinite_tensors
+from chisel.core.errors import InvalidInputError
 from chisel.depth.data import AugmentConfig, FrameSet, augment, downsample_targets
 from chisel.depth.losses import depth_loss
 from chisel.depth.metrics import DepthMetrics, MetricAccumulator
 from chisel.depth.network import DepthNet, DepthNetConfig, DepthPredictor
+from chisel.depth.optim import (
+    BestWeights,
+    RunningMeans,
+    check_config,
+    check_weights,
+    optimizer,
+    out_of_time,
+    set_train_mode,
+    take_step,
+)
 
 log = logging.getLogger(__name__)
 
@@ -66,23 +74,15 @@ class TrainConfig:
     """Torch device: "cpu", "cuda", "cuda:1", ..."""
 
     def __post_init__(self) -> None:
-        checks = {
-            "epochs": self.epochs >= 1,
-            "batch_size": self.batch_size >= 1,
-            "lr": self.lr > 0,
-            "weight_decay": self.weight_decay >= 0,
-            "warmup_fraction": 0.0 <= self.warmup_fraction < 1.0,
-            "si_lambda": 0.0 <= self.si_lambda <= 1.0,
-            "grad_weight": self.grad_weight >= 0,
-            "grad_scales": self.grad_scales >= 1,
-            "max_minutes": self.max_minutes is None or self.max_minutes > 0,
-            "num_threads": self.num_threads is None or self.num_threads >= 1,
-        }
-        for name, ok in checks.items():
-            if not ok:
-                raise InvalidInputError(
-                    f"TrainConfig.{name}", f"invalid value {getattr(self, name)!r}"
-                )
+        check_config(
+            self,
+            {
+                "epochs": self.epochs >= 1,
+                "si_lambda": 0.0 <= self.si_lambda <= 1.0,
+                "grad_weight": self.grad_weight >= 0,
+                "grad_scales": self.grad_scales >= 1,
+            },
+        )
 
     @classmethod
     def finetune_defaults(cls, **overrides: Any) -> TrainConfig:
@@ -152,14 +152,6 @@ def deterministic(seed: int, device: torch.device, num_threads: int | None) -> I
         torch.utils.deterministic.fill_uninitialized_memory = prev_fill  # type: ignore[attr-defined]
 
 
-def _set_train_mode(net: DepthNet, freeze_bn: bool) -> None:
-    net.train()
-    if freeze_bn:
-        for m in net.modules():
-            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-                m.eval()
-
-
 @torch.inference_mode()
 def evaluate_frames(
     predictor: DepthPredictor | torch.nn.Module,
@@ -181,14 +173,6 @@ def evaluate_frames(
             acc.add(p, g, v)
     predictor.train(was_training)
     return acc.result()
-
-
-def _diverged(what: str, epoch: int, step: int | None, cfg: TrainConfig) -> TrainingDivergedError:
-    where = f"epoch {epoch}" + ("" if step is None else f", step {step + 1}")
-    return TrainingDivergedError(
-        f"training diverged at {where}: {what} (learning rate {cfg.lr:g} too high?); "
-        "stopped without saving, so an earlier checkpoint at the output path is kept"
-    )
 
 
 def train(
@@ -221,30 +205,23 @@ def train(
         n = len(frames)
         bs = min(cfg.batch_size, n)
         steps_per_epoch = n // bs  # the incomplete last batch is dropped (BatchNorm, speed)
-        total_steps = steps_per_epoch * cfg.epochs
-        opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        if cfg.warmup_fraction > 0:
-            sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.OneCycleLR(
-                opt, max_lr=cfg.lr, total_steps=total_steps, pct_start=cfg.warmup_fraction
-            )
-        else:
-            sched = torch.optim.lr_scheduler.LambdaLR(
-                opt, lambda s: 0.5 * (1.0 + math.cos(math.pi * min(s, total_steps) / total_steps))
-            )
+        opt, sched = optimizer(
+            net, cfg.lr, cfg.weight_decay, cfg.warmup_fraction, steps_per_epoch * cfg.epochs
+        )
         # The loss is computed on the network's own (coarser) grid: cheaper, and the
         # bilinear upsampling to full size adds nothing to learn.
         net_hw = predictor.net_size(int(frames.rgb.shape[1]), int(frames.rgb.shape[2]))
         depth_t, valid_t = downsample_targets(frames.depth_mm, frames.valid, net_hw)
         gen = torch.Generator().manual_seed(cfg.seed)
         history: list[dict[str, float]] = []
-        best: tuple[float, int, dict[str, torch.Tensor]] | None = None
+        best = BestWeights()
+        means = RunningMeans(("loss", "si", "grad"))
         stopped_early = False
         epochs = tqdm(range(1, cfg.epochs + 1), desc="depth train", disable=not progress)
         for epoch in epochs:
             te = time.perf_counter()
-            _set_train_mode(net, cfg.freeze_batchnorm)
+            set_train_mode(net, cfg.freeze_batchnorm)
             perm = torch.randperm(n, generator=gen)
-            sums = {"loss": 0.0, "si": 0.0, "grad": 0.0}
             for s in range(steps_per_epoch):
                 idx = perm[s * bs : (s + 1) * bs]
                 rgb, depth, valid = frames.rgb[idx], depth_t[idx], valid_t[idx]
@@ -255,27 +232,16 @@ def train(
                 loss, parts = depth_loss(
                     log_pred, depth, valid, cfg.si_lambda, cfg.grad_weight, cfg.grad_scales
                 )
-                if not bool(torch.isfinite(loss.detach())):
-                    raise _diverged(f"the loss is {float(loss.detach())}", epoch, s, cfg)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                sched.step()
-                sums["loss"] += float(loss.detach())
-                sums["si"] += parts["si"]
-                sums["grad"] += parts["grad"]
-            bad = nonfinite_tensors(dict(net.state_dict()))
-            if bad:
-                raise _diverged(f"{len(bad)} weight tensor(s) hold NaN/inf", epoch, None, cfg)
-            row = {k: v / steps_per_epoch for k, v in sums.items()}
+                loss_value = take_step(opt, sched, loss, f"epoch {epoch}, step {s + 1}", cfg.lr)
+                means.add(loss_value, parts)
+            check_weights(net, f"epoch {epoch}", cfg.lr)
+            row = means.pop()
             row["epoch"] = epoch
             row["lr"] = float(opt.param_groups[0]["lr"])
             if val_frames is not None and len(val_frames) > 0:
                 m = evaluate_frames(predictor, val_frames, device)
                 row.update({f"val_{k}": float(v) for k, v in m.to_dict().items()})
-                if best is None or m.abs_rel < best[0]:
-                    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-                    best = (m.abs_rel, epoch, state)
+                best.offer(m.abs_rel, epoch, net)
             row["seconds"] = time.perf_counter() - te
             history.append(row)
             log.info(
@@ -289,17 +255,14 @@ def train(
                 row["seconds"],
             )
             epochs.set_postfix(loss=f"{row['loss']:.4f}")
-            if cfg.max_minutes is not None and time.perf_counter() - t0 > 60.0 * cfg.max_minutes:
+            if out_of_time(t0, cfg.max_minutes):
                 stopped_early = epoch < cfg.epochs
                 if stopped_early:
                     log.warning("max_minutes=%s reached after epoch %d", cfg.max_minutes, epoch)
                 break
-        best_epoch = history[-1]["epoch"]
-        val_metrics = None
-        if best is not None:
-            net.load_state_dict(best[2])
-            best_epoch = best[1]
+        best_epoch = best.restore(net, last=int(history[-1]["epoch"]))
         net = net.to("cpu").to(memory_format=torch.contiguous_format).eval()
+        val_metrics = None
         if val_frames is not None and len(val_frames) > 0:
             val_metrics = evaluate_frames(DepthPredictor(net).eval(), val_frames, "cpu")
     return TrainResult(

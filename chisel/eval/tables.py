@@ -7,7 +7,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,6 +17,7 @@ import numpy as np
 
 from chisel.core.atomic import atomic_write_text
 from chisel.core.errors import InvalidInputError
+from chisel.io.manifest import read_json_manifest
 
 METHODS: tuple[str, ...] = ("no_update", "updated", "depth_ablation", "registration_ablation")
 """The paper's methods, in table order. Other method names are allowed and sort after these."""
@@ -182,14 +183,12 @@ def _json_text(d: Mapping[str, Any]) -> str:
 
 
 def read_json(path: str | Path, what: str) -> dict[str, Any]:
-    """Read a JSON file, raising :class:`InvalidInputError` naming it on any problem."""
+    """Read a JSON object through :func:`chisel.io.manifest.read_json_manifest` (size and
+    nesting bounded); every problem is an :class:`InvalidInputError` naming the file."""
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, f"{what} file is missing")
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InvalidInputError(path, f"invalid JSON in {what}: {exc}") from None
+    return read_json_manifest(path)
 
 
 def read_metrics(path: str | Path) -> dict[str, Any]:
@@ -247,6 +246,20 @@ def metrics_to_csv(metrics: Mapping[str, Any]) -> str:
     return buf.getvalue()
 
 
+def _step_method_grid(
+    steps: Sequence[Mapping[str, Any]],
+    methods: list[str],
+    cell: Callable[[Mapping[str, Any]], str],
+) -> list[str]:
+    """Markdown lines of a step x method table; ``cell`` formats a method's entry of a
+    step, "-" where the step has none."""
+    lines = ["| step | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for s in steps:
+        cells = ["-" if s["methods"].get(m) is None else cell(s["methods"][m]) for m in methods]
+        lines.append(f"| {s['label']} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
     """Two Markdown tables: the paper's (mean ± std (n) per step x method) and surface metrics."""
     methods = table_methods(metrics)
@@ -254,17 +267,12 @@ def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
     lines += [
         "Correspondence error, mm: mean ± std (n points) of same-pixel distances inside the ROI box.",
         "",
-        "| step | " + " | ".join(methods) + " |",
-        "|---|" + "---|" * len(methods),
     ]
-    for s in metrics["steps"]:
-        cells = []
-        for m in methods:
-            c = s["methods"].get(m)
-            cells.append(
-                "-" if c is None else f"{c['mean_mm']:.3f} ± {c['std_mm']:.3f} (n={c['n_points']})"
-            )
-        lines.append(f"| {s['label']} | " + " | ".join(cells) + " |")
+    lines += _step_method_grid(
+        metrics["steps"],
+        methods,
+        lambda c: f"{c['mean_mm']:.3f} ± {c['std_mm']:.3f} (n={c['n_points']})",
+    )
     surf_keys = (
         "accuracy_mm",
         "completeness_mm",
@@ -396,25 +404,19 @@ def seeds_to_csv(agg: Mapping[str, Any]) -> str:
 
 def seeds_to_markdown(agg: Mapping[str, Any]) -> str:
     """Markdown: the correspondence error per step x method, mean ± std across inputs."""
-    names: set[str] = set()
-    for s in agg["steps"]:
-        names |= set(s["methods"])
-    methods = _method_order(names)
+    methods = table_methods(agg)
     lines = [
         f"# Evaluation across {len(agg['inputs'])} runs: {agg['experiment']}",
         "",
         "Correspondence error, mm: mean over runs of the per-run mean ± std over runs (runs).",
         "",
-        "| step | " + " | ".join(methods) + " |",
-        "|---|" + "---|" * len(methods),
     ]
-    for s in agg["steps"]:
-        cells = []
-        for m in methods:
-            c = s["methods"].get(m)
-            v = None if c is None else c["mean_mm"]
-            cells.append("-" if v is None else f"{v['mean']:.3f} ± {v['std']:.3f} ({v['n']})")
-        lines.append(f"| {s['label']} | " + " | ".join(cells) + " |")
+
+    def cell(c: Mapping[str, Any]) -> str:
+        v = c["mean_mm"]
+        return "-" if v is None else f"{v['mean']:.3f} ± {v['std']:.3f} ({v['n']})"
+
+    lines += _step_method_grid(agg["steps"], methods, cell)
     return "\n".join(lines) + "\n"
 
 
