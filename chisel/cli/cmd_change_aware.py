@@ -12,8 +12,6 @@ import argparse
 import logging
 from pathlib import Path
 
-import trimesh
-
 from chisel.cli.args import trainer_options
 from chisel.cli.provenance import canonical_command, environment, finetune_info, write_summary
 from chisel.core.errors import InvalidInputError
@@ -33,6 +31,7 @@ from chisel.depth.prior_data import (
     preop_prior_set,
     read_step_dataset,
 )
+from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
 from chisel.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -117,9 +116,7 @@ def finetune(args: argparse.Namespace) -> int:
         )
     parent = Path(args.checkpoint)
     net, parent_info = load_change_checkpoint(parent)
-    mesh = trimesh.load(args.mesh, force="mesh", process=False)
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InvalidInputError(args.mesh, "not a triangle mesh with faces")
+    mesh = read_mesh_file(args.mesh, "--mesh", READABLE_MESH_SUFFIXES)
     seqs = [Sequence(p) for p in args.sequence]
     parts = [preop_prior_set(s, mesh, frame_step=args.frame_step) for s in seqs]
     targets = sorted({what for _, what in parts})

@@ -1,6 +1,6 @@
 """CLI: ``chisel ct-surface | build | update | mesh | render-depth`` (the updater's I/O).
 
-Thin wrappers: they read files, call :mod:`chisel.updater`, and write results
+Thin wrappers: they read files, call the method (:mod:`chisel.build`, :mod:`chisel.batch`), and write results
 atomically. Units: millimetres; poses ``T_world_from_cam`` (world = CT frame).
 """
 
@@ -205,7 +205,7 @@ def _add_update(sub: argparse._SubParsersAction) -> None:
         "--config",
         type=Path,
         default=None,
-        help="YAML file of update parameters (the fields of chisel.updater.UpdateConfig: "
+        help="YAML file of update parameters (the fields of chisel.update_config.UpdateConfig: "
         "change: {...}, registration: {...} and the top-level ones); the flags below "
         "override it, and what neither sets keeps its default",
     )

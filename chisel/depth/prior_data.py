@@ -46,6 +46,7 @@ from chisel.core.raycast import MeshRaycaster
 from chisel.depth.change_train import PriorSet
 from chisel.depth.data import DATASET_INDEX, SequenceRef, check_training_seeds
 from chisel.io.manifest import named_path, read_json_manifest
+from chisel.io.meshfile import read_mesh_file
 from chisel.io.sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -132,10 +133,7 @@ def phantom_step_mesh(phantom_dir: str | Path, step: int) -> trimesh.Trimesh:
     if step not in steps:
         raise InvalidInputError(header, f"no mesh for step {step} (steps: {sorted(steps)})")
     mesh_path = named_path(header, steps[step], f"steps[step={step}].mesh", kind="file")
-    mesh = trimesh.load(mesh_path, force="mesh", process=False)
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InvalidInputError(mesh_path, "not a triangle mesh with faces")
-    return mesh
+    return read_mesh_file(mesh_path, f"step {step} mesh")
 
 
 def _frame_indices(n: int, frame_step: int) -> list[int]:
