@@ -237,7 +237,6 @@ def cap_schedule(
     return np.concatenate([[first], first + rest])
 
 
-
 def plan_procedure(
     anatomy: Anatomy,
     procedure: str,
