@@ -7,7 +7,9 @@ by construction. Procedures (``docs/phantoms.md``, "Procedures"):
 
 * ``uncinectomy``: the uncinate process (the airway-facing cap of the infundibulum's wall)
   is taken in ``n`` fragments from its free (inferior) edge upward, until the infundibulum
-  and the view towards the maxillary ostium lie open.
+  and the view towards the maxillary ostium lie open: the first reaches just past the
+  spot the endoscope is aimed at, the others share the rest of the cap's area
+  (:func:`cap_schedule`).
 * ``ethmoidectomy``: a shorter uncinectomy, then the anterior wall of the ethmoid bulla in
   fragments, then the walls between the bulla and the neighbouring anterior ethmoid cells.
 * ``bites``: the small overlapping bites of :func:`phantoms.bites.plan_bites` (the fine
@@ -71,10 +73,11 @@ FIRST_AREA_RANGE = (0.25, 0.8)
 bulla, draws it in this range): at least a quarter, and at least a fifth is left for the
 other fragments, so that no step is a sliver and none takes nearly the whole cap."""
 MAX_PROTRUSION_MM = {"infundibulum": PARAM_RANGES["uncinate_bulge_mm"][1]}
-"""The uncinate process is the part of the infundibulum's exposed wall that stands at most
-this far (the largest ``uncinate_bulge_mm``) proud of the lateral wall, measured from its
-apex: where the lateral wall recedes around it, more of the sphere is exposed, but that
-is lateral wall, not uncinate, and taking it would size the surgery by the recess."""
+"""The uncinate process is the part of the infundibulum's exposed wall within this depth
+(the largest ``uncinate_bulge_mm``) of the cap's apex. Where the lateral wall recedes on
+one side more of the sphere is exposed; a rim taken there (the cut is a plane at the rim's
+depth) also cut the sphere's wall out of the solid lateral wall on every other side, and
+the size of the surgery followed the recess rather than the uncinate."""
 BITES_PER_FRAGMENT = (1, 3)
 """Forceps bites per fragment (the scallops of its cut edge)."""
 RAGGED_MM = (0.35, 0.7)
