@@ -49,7 +49,6 @@ from phantoms.errors import (
     ProcedureError,
     UnknownProcedureError,
 )
-from phantoms.params import PARAM_RANGES
 
 PROCEDURES: tuple[str, ...] = ("uncinectomy", "ethmoidectomy", "bites")
 """Procedures ``python -m phantoms generate --procedure`` accepts (first = default)."""
@@ -72,7 +71,9 @@ FIRST_AREA_RANGE = (0.25, 0.8)
 """Bounds of the first fragment's share of the cap's area (a cap without a target, the
 bulla, draws it in this range): at least a quarter, and at least a fifth is left for the
 other fragments, so that no step is a sliver and none takes nearly the whole cap."""
-MAX_PROTRUSION_MM = {"infundibulum": PARAM_RANGES["uncinate_bulge_mm"][1]}
+# the upper end of uncinate_bulge_mm in phantoms.params.PARAM_RANGES (which imports this
+# module to check procedures, hence a literal; a test keeps the two equal)
+MAX_PROTRUSION_MM = {"infundibulum": 4.0}
 """The uncinate process is the part of the infundibulum's exposed wall within this depth
 (the largest ``uncinate_bulge_mm``) of the cap's apex. Where the lateral wall recedes on
 one side more of the sphere is exposed; a rim taken there (the cut is a plane at the rim's

@@ -34,6 +34,7 @@ from phantoms.procedures import (
     FIRST_AREA_RANGE,
     FIRST_PAST_TARGET_RANGE,
     FRAGMENT_SHARE_RANGE,
+    MAX_PROTRUSION_MM,
     STEP_RANGES,
     Fragment,
     cap_schedule,
@@ -335,6 +336,7 @@ def test_uncinate_is_the_wall_proud_of_the_lateral_wall_not_a_recess():
     an = build_anatomy(sample_params(9), 9, 1.0)
     cell = an.cell("infundibulum")
     ro = cell.outer_radius_mm
+    assert MAX_PROTRUSION_MM["infundibulum"] == PARAM_RANGES["uncinate_bulge_mm"][1]
     bound = ro - PARAM_RANGES["uncinate_bulge_mm"][1]
     _, frags, cuts = plan_procedure(an, "uncinectomy", 5, seed=9)
     a = np.asarray(frags[0].params["R_world_from_local"])[:, 1]
