@@ -130,15 +130,22 @@ def _shell(cell: SphereCell, inner_pad: float, outer_pad: float) -> m3d.Manifold
     )
 
 
-def exposed_cap(tissue: m3d.Manifold, cell: SphereCell, tol_mm: float = 0.05) -> np.ndarray:
+def exposed_cap(
+    tissue: m3d.Manifold, cell: SphereCell, tol_mm: float = 0.05, with_areas: bool = False
+):
     """(P, 3) unit directions from the cell centre to the faces of the tissue surface that
-    lie on the cell's outer wall sphere (its exposed, airway-facing wall)."""
+    lie on the cell's outer wall sphere (its exposed, airway-facing wall); with
+    ``with_areas`` also their (P,) areas in mm^2."""
     v, f = arrays_from_manifold(tissue)
     c = np.asarray(cell.center_mm)
     on = np.abs(np.linalg.norm(v - c, axis=1) - cell.outer_radius_mm) < tol_mm
-    patch = on[f].all(axis=1)
-    cen = v[f[patch]].mean(axis=1) - c
-    return cen / np.linalg.norm(cen, axis=1, keepdims=True)
+    tri = v[f[on[f].all(axis=1)]]
+    cen = tri.mean(axis=1) - c
+    dirs = cen / np.linalg.norm(cen, axis=1, keepdims=True)
+    if not with_areas:
+        return dirs
+    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return dirs, areas
 
 
 # -------------------------------------------------------------------------- cutters

@@ -7,7 +7,9 @@ by construction. Procedures (``docs/phantoms.md``, "Procedures"):
 
 * ``uncinectomy``: the uncinate process (the airway-facing cap of the infundibulum's wall)
   is taken in ``n`` fragments from its free (inferior) edge upward, until the infundibulum
-  and the view towards the maxillary ostium lie open.
+  and the view towards the maxillary ostium lie open: the first reaches just past the
+  spot the endoscope is aimed at, the others share the rest of the cap's area
+  (:func:`cap_schedule`).
 * ``ethmoidectomy``: a shorter uncinectomy, then the anterior wall of the ethmoid bulla in
   fragments, then the walls between the bulla and the neighbouring anterior ethmoid cells.
 * ``bites``: the small overlapping bites of :func:`phantoms.bites.plan_bites` (the fine
@@ -59,12 +61,24 @@ STEP_RANGES: dict[str, tuple[int, int]] = {
 """Allowed number of steps (``--bites N``) per procedure."""
 
 FRAGMENT_SHARE_RANGE = (0.7, 1.3)
-"""Relative height of one fragment of a cap (normalised over the fragments)."""
-FIRST_LEVEL_RANGE = (0.72, 0.82)
-"""Height of the first fragment's edge, as a fraction of the cap's height, when a cap is
-taken in several steps: the free edge comes off in one larger piece (several bites) that
-reaches past the cap's apex, so the first step already opens a view into the cell; the
-other fragments share the rest."""
+"""Relative size (share of the cap's area) of each fragment after the first, normalised
+over those fragments."""
+FIRST_PAST_TARGET_RANGE = (0.05, 0.15)
+"""The uncinectomy's first fragment takes the free edge up to just past the target (the
+spot the endoscope is aimed at, where the first bites go): its edge lies this much of the
+cap's area above the target's height."""
+FIRST_AREA_RANGE = (0.25, 0.8)
+"""Bounds of the first fragment's share of the cap's area (a cap without a target, the
+bulla, draws it in this range): at least a quarter, and at least a fifth is left for the
+other fragments, so that no step is a sliver and none takes nearly the whole cap."""
+# the upper end of uncinate_bulge_mm in phantoms.params.PARAM_RANGES (which imports this
+# module to check procedures, hence a literal; a test keeps the two equal)
+MAX_PROTRUSION_MM = {"infundibulum": 4.0}
+"""The uncinate process is the part of the infundibulum's exposed wall within this depth
+(the largest ``uncinate_bulge_mm``) of the cap's apex. Where the lateral wall recedes on
+one side more of the sphere is exposed; a rim taken there (the cut is a plane at the rim's
+depth) also cut the sphere's wall out of the solid lateral wall on every other side, and
+the size of the surgery followed the recess rather than the uncinate."""
 BITES_PER_FRAGMENT = (1, 3)
 """Forceps bites per fragment (the scallops of its cut edge)."""
 RAGGED_MM = (0.35, 0.7)
@@ -133,9 +147,15 @@ def _cap_fragments(
     procedure: str,
     first_step: int,
     up_hint: np.ndarray,
+    focus_mm: np.ndarray | None = None,
 ) -> list[Fragment]:
-    """``n`` cumulative cap slices of the cell's exposed wall, from bottom to top."""
-    dirs = exposed_cap(tissue, cell)
+    """``n`` cumulative cap slices of the cell's exposed wall, from bottom to top.
+
+    ``focus_mm``: the point the endoscope is aimed at (the target); the first fragment
+    reaches just past it. Without it the first fragment's share is drawn in
+    :data:`FIRST_AREA_RANGE`.
+    """
+    dirs, areas = exposed_cap(tissue, cell, with_areas=True)
     if len(dirs) < 10:
         raise ProcedureError(
             f"{procedure} step {first_step}",
@@ -150,19 +170,22 @@ def _cap_fragments(
     local = dirs @ R * ro  # (P, 3): side, depth, height on the outer sphere
     # keep clear of the rim where the wall runs into the lateral wall
     depth_min = float(np.quantile(local[:, 1], 0.08)) + 0.4
-    inside = local[local[:, 1] >= depth_min]
-    if len(inside) < 10:  # pragma: no cover - a patch always has an interior
+    if cell.name in MAX_PROTRUSION_MM:
+        depth_min = max(depth_min, ro - MAX_PROTRUSION_MM[cell.name] + 0.4)
+    keep = local[:, 1] >= depth_min
+    if keep.sum() < 10:  # pragma: no cover - a patch always has an interior
         raise ProcedureError(
             f"{procedure} step {first_step}", f"the exposed {structure_label} is too small to cut"
         )
-    h_lo, h_hi = float(inside[:, 2].min()), float(inside[:, 2].max())
-    shares = rng.uniform(*FRAGMENT_SHARE_RANGE, size=n)
-    first = float(rng.uniform(*FIRST_LEVEL_RANGE))
-    cum = first + (1.0 - first) * (np.cumsum(shares) - shares[0]) / max(shares[1:].sum(), 1e-9)
+    cum = cap_schedule(local[keep, 2], areas[keep], n, rng, _height(focus_mm, cell, R))
+    order = np.argsort(local[keep, 2])
+    heights = local[keep, 2][order]
+    cum_area = np.cumsum(areas[keep][order]) / areas[keep].sum()
     out = []
     for k in range(n):
         last = k == n - 1
-        level = h_hi + 3.0 if last else h_lo + (h_hi - h_lo) * float(cum[k])
+        # the last fragment takes what is left of the cap, up to and past its top
+        level = heights[-1] + 3.0 if last else float(np.interp(cum[k], cum_area, heights))
         out.append(
             Fragment(
                 "cap",
@@ -170,6 +193,7 @@ def _cap_fragments(
                 {
                     "structure_label": structure_label,
                     "level_mm": round(level, 6),
+                    "area_fraction": round(float(cum[k]), 6),
                     "depth_min_mm": round(depth_min, 6),
                     "edge_tilt_deg": round(float(rng.uniform(-EDGE_TILT_DEG, EDGE_TILT_DEG)), 6),
                     "ragged_mm": round(float(rng.uniform(*RAGGED_MM)), 6),
@@ -180,6 +204,41 @@ def _cap_fragments(
             )
         )
     return out
+
+
+def _height(point_mm: np.ndarray | None, cell: SphereCell, R: np.ndarray) -> float | None:
+    """Height of a point in the cap's local frame (None stays None)."""
+    if point_mm is None:
+        return None
+    return float((np.asarray(point_mm, float) - np.asarray(cell.center_mm)) @ R[:, 2])
+
+
+def cap_schedule(
+    heights_mm: np.ndarray,
+    areas_mm2: np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+    focus_height_mm: float | None = None,
+) -> np.ndarray:
+    """Cumulative share of the cap's area taken after each of ``n`` fragments, (n,).
+
+    heights_mm, areas_mm2 : (P,) height (along the direction of progress) and area of the
+    cap's faces. The first fragment takes the area below ``focus_height_mm`` plus a share
+    drawn in :data:`FIRST_PAST_TARGET_RANGE`, clipped to :data:`FIRST_AREA_RANGE` (without
+    a focus: drawn in that range); the others share the rest in proportions drawn in
+    :data:`FRAGMENT_SHARE_RANGE`; the last value is 1 (the whole cap).
+    """
+    shares = rng.uniform(*FRAGMENT_SHARE_RANGE, size=max(n - 1, 1))
+    if focus_height_mm is None:
+        first = float(rng.uniform(*FIRST_AREA_RANGE))
+    else:
+        below = float(areas_mm2[heights_mm <= focus_height_mm].sum() / areas_mm2.sum())
+        past = float(rng.uniform(*FIRST_PAST_TARGET_RANGE))
+        first = float(np.clip(below + past, *FIRST_AREA_RANGE))
+    if n == 1:
+        return np.ones(1)
+    rest = (1.0 - first) * np.cumsum(shares) / shares.sum()
+    return np.concatenate([[first], first + rest])
 
 
 def plan_procedure(
@@ -212,9 +271,10 @@ def plan_procedure(
     up = np.array([0.0, 0.0, 1.0])
     infund = anatomy.cell("infundibulum")
     tgt, _, _ = find_target(anatomy, "uncinate")
+    focus = np.asarray(tgt.center_mm, float)  # where the endoscope looks: the first bites
     if procedure == "uncinectomy":
         frags = _cap_fragments(
-            anatomy.tissue, infund, "uncinate process", n_steps, rng, procedure, 1, up
+            anatomy.tissue, infund, "uncinate process", n_steps, rng, procedure, 1, up, focus
         )
         frags, cuts = _cut_with_retries(anatomy, frags, procedure, anatomy.tissue, 1, set())
         return tgt, frags, cuts
@@ -228,7 +288,9 @@ def plan_procedure(
         n_w = 0
     n_b = n_steps - n_u - n_w
     ids: set[int] = set()
-    frags = _cap_fragments(anatomy.tissue, infund, "uncinate process", n_u, rng, procedure, 1, up)
+    frags = _cap_fragments(
+        anatomy.tissue, infund, "uncinate process", n_u, rng, procedure, 1, up, focus
+    )
     frags, cuts = _cut_with_retries(anatomy, frags, procedure, anatomy.tissue, 1, ids)
     tissue = cuts[-1].tissue
     b_frags = _cap_fragments(tissue, bulla, "ethmoid bulla", n_b, rng, procedure, n_u + 1, up)

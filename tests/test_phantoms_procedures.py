@@ -22,14 +22,25 @@ from phantoms import generate
 from phantoms.anatomy import build_anatomy
 from phantoms.bites import Bite
 from phantoms.cli import main
+from phantoms.cutters import exposed_cap
 from phantoms.errors import (
     BiteMissError,
     ParameterRangeError,
     ProcedureError,
     UnknownProcedureError,
 )
-from phantoms.params import PhantomConfig, sample_params
-from phantoms.procedures import STEP_RANGES, Fragment, cut_steps, plan_procedure
+from phantoms.params import PARAM_RANGES, PhantomConfig, sample_params
+from phantoms.procedures import (
+    FIRST_AREA_RANGE,
+    FIRST_PAST_TARGET_RANGE,
+    FRAGMENT_SHARE_RANGE,
+    MAX_PROTRUSION_MM,
+    STEP_RANGES,
+    Fragment,
+    cap_schedule,
+    cut_steps,
+    plan_procedure,
+)
 
 COARSE = ["--spacing-mm", "1.0", "--mesh-edge-mm", "1.0", "--mucosa-mm", "1.5"]
 RUNS = {
@@ -275,3 +286,63 @@ def test_config_checks_procedure_and_step_count():
     with pytest.raises(ParameterRangeError):
         PhantomConfig(procedure="uncinectomy", n_bites=hi + 1)
     assert PhantomConfig().procedure == "uncinectomy" and PhantomConfig().n_bites == 5
+
+
+# ------------------------------------------------------------- the uncinectomy's schedule
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 8])
+@pytest.mark.parametrize("focus", [None, -4.0, 0.5, 4.5])
+def test_cap_schedule_takes_bounded_nested_shares(n, focus):
+    # a cap of 1001 equal faces evenly spread over heights -5..5 mm: the share below a
+    # height h is (h + 5) / 10
+    heights = np.linspace(-5.0, 5.0, 1001)
+    areas = np.ones_like(heights)
+    for seed in range(20):
+        cum = cap_schedule(heights, areas, n, np.random.default_rng(seed), focus)
+        assert cum.shape == (n,) and cum[-1] == pytest.approx(1.0)
+        if n == 1:
+            continue
+        assert np.all(np.diff(cum) > 0)  # nested: every step takes more of the cap
+        lo, hi = FIRST_AREA_RANGE
+        assert lo - 1e-12 <= cum[0] <= hi + 1e-12
+        if focus is not None:
+            below = (focus + 5.0) / 10.0
+            want = np.clip(below + np.array(FIRST_PAST_TARGET_RANGE), lo, hi)
+            assert want[0] - 2e-3 <= cum[0] <= want[1] + 2e-3
+        later = np.diff(cum)
+        s_lo, s_hi = FRAGMENT_SHARE_RANGE
+        assert later.max() / later.min() <= s_hi / s_lo + 1e-9
+        # no later step takes more than its bounded share of what the first left
+        assert later.max() <= (1.0 - cum[0]) * s_hi / (s_hi + (n - 2) * s_lo) + 1e-9
+
+
+def test_uncinectomy_fragments_follow_the_area_schedule(runs):
+    m = _manifest(runs["uncinectomy"])
+    frags = [s["fragment"] for s in m["steps"][1:]]
+    shares = [f["area_fraction"] for f in frags]
+    assert shares[-1] == 1.0 and np.all(np.diff(shares) > 0)
+    assert FIRST_AREA_RANGE[0] <= shares[0] <= FIRST_AREA_RANGE[1]
+    # the first fragment's edge reaches past the target (unless its share is capped)
+    infund = next(c for c in m["params"]["ethmoid_cells_mm"] if c["name"] == "infundibulum")
+    R = np.asarray(frags[0]["R_world_from_local"])
+    target_height = (np.subtract(m["target"]["center_mm"], infund["center_mm"])) @ R[:, 2]
+    assert frags[0]["level_mm"] > target_height or shares[0] == FIRST_AREA_RANGE[1]
+
+
+def test_uncinate_is_the_wall_proud_of_the_lateral_wall_not_a_recess():
+    # seed 9: the lateral wall recedes around the infundibulum, exposing its sphere far
+    # below the uncinate's largest protrusion (4 mm); the cut must not follow the recess
+    an = build_anatomy(sample_params(9), 9, 1.0)
+    cell = an.cell("infundibulum")
+    ro = cell.outer_radius_mm
+    assert MAX_PROTRUSION_MM["infundibulum"] == PARAM_RANGES["uncinate_bulge_mm"][1]
+    bound = ro - PARAM_RANGES["uncinate_bulge_mm"][1]
+    _, frags, cuts = plan_procedure(an, "uncinectomy", 5, seed=9)
+    a = np.asarray(frags[0].params["R_world_from_local"])[:, 1]
+    exposed_depth = exposed_cap(an.tissue, cell) @ a * ro
+    assert np.quantile(exposed_depth, 0.08) < bound - 1.0  # the recess is there
+    for frag, cut in zip(frags, cuts, strict=True):
+        v = np.asarray(cut.removed.to_mesh64().vert_properties)[:, :3]
+        depth = (v - np.asarray(cell.center_mm)) @ a
+        assert depth.min() >= bound + 0.4 - 1e-6, frag.params["level_mm"]
