@@ -34,6 +34,7 @@ On a shared machine the timings are pessimistic.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -48,15 +49,8 @@ from chisel.depth.change_train import change_metrics
 from chisel.depth.prior_data import build_prior_set, phantom_step_mesh, read_step_dataset
 from chisel.io.sequence import Frame, Sequence
 
-
-def cpu_simd() -> str:
-    """The widest x86 vector extension the CPU reports (Linux)."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            flags = next((ln.split(":", 1)[1].split() for ln in fh if ln.startswith("flags")), [])
-    except OSError:
-        return "unknown"
-    return next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "unknown")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_render import cpu_simd  # noqa: E402
 
 
 def _median_scaled(pred: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -35,40 +35,17 @@ sys.path.insert(0, str(ROOT))
 
 from phantoms.generate import generate  # noqa: E402
 from phantoms.params import PhantomConfig  # noqa: E402
+from sim.dataset import parse_seeds  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_render import cpu_simd  # noqa: E402
 
 
 def _import_scoring():
     """chisel's evaluation functions (RoiBox, correspondence_error, render_depths)."""
-    import importlib
+    from chisel.eval.metrics import RoiBox, correspondence_error, render_depths
 
-    for name in ("chisel.eval.metrics", "chisel.eval.scoring", "chisel.evaluate"):
-        try:
-            mod = importlib.import_module(name)
-        except ImportError:
-            continue
-        return mod.RoiBox, mod.correspondence_error, mod.render_depths
-    raise ImportError("chisel's correspondence_error not found (chisel.eval.metrics)")
-
-
-def cpu_simd() -> str:
-    """The widest x86 vector extension the CPU reports (Linux)."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            flags = next((ln.split(":", 1)[1].split() for ln in fh if ln.startswith("flags")), [])
-    except OSError:
-        return "unknown"
-    return next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "unknown")
-
-
-def _seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        if "-" in part:
-            a, b = part.split("-", 1)
-            out += list(range(int(a), int(b) + 1))
-        else:
-            out.append(int(part))
-    return out
+    return RoiBox, correspondence_error, render_depths
 
 
 def workflow_render_settings(config_path: Path) -> dict:
@@ -141,7 +118,7 @@ def main() -> None:
     print(f"eval_poses: {rc['eval_poses']}")
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
-        for seed in _seeds(args.seeds):
+        for seed in parse_seeds(args.seeds):
             out = root / f"phantom_{seed}"
             ts = time.perf_counter()
             cfg = PhantomConfig(
