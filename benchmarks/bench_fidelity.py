@@ -18,15 +18,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from sim.dataset import parse_seeds
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_workflow import run_workflow  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXACT, NETWORK, NONE = "depth_ablation", "updated", "no_update"
@@ -130,19 +131,11 @@ def main() -> int:
     parser.add_argument("--cores", type=int, default=2)
     args = parser.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-fidelity-"))
-    cmd = [sys.executable, "-m", "snakemake", "table", "-s", str(ROOT / "Snakefile")]
-    cmd += ["-d", str(workdir), "--cores", str(args.cores)]
-    cmd += ["--configfile", str(args.configfile.resolve())]
-    if args.seeds:
-        cmd += ["--config", f"table_seeds={parse_seeds(args.seeds)}"]
-    t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    wall_s = time.perf_counter() - t0
-    if r.returncode != 0:
-        sys.stderr.write(r.stdout[-4000:] + r.stderr[-4000:])
-        print(f"workflow_failed: rc={r.returncode}")
+    seeds = [f"table_seeds={parse_seeds(args.seeds)}"] if args.seeds else []
+    ran = run_workflow("table", workdir, args.configfile, args.cores, seeds)
+    if ran is None:
         return 1
-    experiment = next(workdir.joinpath("results").iterdir()).name
+    experiment, wall_s = ran
     results = workdir / "results" / experiment
     per_seed: dict[int, dict[str, float]] = {}
     for path in sorted(results.glob("seed_*/base/metrics.json")):

@@ -18,6 +18,26 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def run_workflow(
+    target: str, workdir: Path, configfile: Path, cores: int = 2, config: list[str] | None = None
+) -> tuple[str, float] | None:
+    """Run a workflow target in ``workdir``: (experiment name, wall seconds), or None after
+    printing ``workflow_failed`` and the log's tail."""
+    # The target goes before --configfile, which takes several values.
+    cmd = [sys.executable, "-m", "snakemake", target, "-s", str(ROOT / "Snakefile")]
+    cmd += ["-d", str(workdir), "--cores", str(cores), "--configfile", str(configfile.resolve())]
+    if config:
+        cmd += ["--config", *config]
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    wall_s = time.perf_counter() - t0
+    if r.returncode != 0:
+        sys.stderr.write(r.stdout[-4000:] + r.stderr[-4000:])
+        print(f"workflow_failed: rc={r.returncode}")
+        return None
+    return next(workdir.joinpath("results").iterdir()).name, wall_s
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--configfile", type=Path, default=ROOT / "config" / "config.yaml")
@@ -25,17 +45,10 @@ def main() -> int:
     parser.add_argument("--target", default="all")
     args = parser.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-bench-"))
-    # The target goes before --configfile, which takes several values.
-    cmd = [sys.executable, "-m", "snakemake", args.target, "-s", str(ROOT / "Snakefile")]
-    cmd += ["-d", str(workdir), "--cores", "2", "--configfile", str(args.configfile.resolve())]
-    t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    wall_s = time.perf_counter() - t0
-    if r.returncode != 0:
-        sys.stderr.write(r.stdout[-4000:] + r.stderr[-4000:])
-        print(f"workflow_failed: rc={r.returncode}")
+    ran = run_workflow(args.target, workdir, args.configfile)
+    if ran is None:
         return 1
-    experiment = next(workdir.joinpath("results").iterdir()).name
+    experiment, wall_s = ran
     metrics = json.loads((workdir / "results" / experiment / "metrics.json").read_text())
     print(f"experiment: {experiment}")
     print(f"workdir: {workdir}")

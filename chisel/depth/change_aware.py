@@ -47,7 +47,7 @@ from chisel.depth.checkpoint import (
     read_checkpoint,
     sidecar_path,
 )
-from chisel.depth.network import conv_bn_relu
+from chisel.depth.network import check_rgb_normalisation, conv_bn_relu
 
 KIND = KIND_CHANGE_AWARE
 """The ``kind`` recorded in change-aware checkpoints and TorchScript exports."""
@@ -95,11 +95,7 @@ class ChangeNetConfig:
                 "ChangeNetConfig.max_log_correction",
                 f"must be in (0, 5], got {self.max_log_correction}",
             )
-        if len(self.rgb_mean) != 3 or len(self.rgb_std) != 3 or min(self.rgb_std) <= 0:
-            raise InvalidInputError(
-                "ChangeNetConfig.rgb_mean/rgb_std",
-                f"need 3 values each and positive std, got {self.rgb_mean}, {self.rgb_std}",
-            )
+        check_rgb_normalisation(self.rgb_mean, self.rgb_std, "ChangeNetConfig")
 
     @property
     def stride(self) -> int:

@@ -27,6 +27,17 @@ LOG_DEPTH_CLAMP = 12.0
 """Predicted log-depth is clamped to +-this before ``exp`` so depth stays finite (e^12 ~ 1.6e5)."""
 
 
+def check_rgb_normalisation(
+    rgb_mean: tuple[float, ...], rgb_std: tuple[float, ...], owner: str
+) -> None:
+    """The input normalisation of a network's config: 3 means, 3 positive deviations."""
+    if len(rgb_mean) != 3 or len(rgb_std) != 3 or min(rgb_std) <= 0:
+        raise InvalidInputError(
+            f"{owner}.rgb_mean/rgb_std",
+            f"need 3 values each and positive std, got {rgb_mean}, {rgb_std}",
+        )
+
+
 @dataclass(frozen=True)
 class DepthNetConfig:
     """Architecture of :class:`DepthNet`; stored in every checkpoint (JSON-able)."""
@@ -65,11 +76,7 @@ class DepthNetConfig:
             raise InvalidInputError(
                 "DepthNetConfig.input_scale", f"must be in [0.1, 1], got {self.input_scale}"
             )
-        if len(self.rgb_mean) != 3 or len(self.rgb_std) != 3 or min(self.rgb_std) <= 0:
-            raise InvalidInputError(
-                "DepthNetConfig.rgb_mean/rgb_std",
-                f"need 3 values each and positive std, got {self.rgb_mean}, {self.rgb_std}",
-            )
+        check_rgb_normalisation(self.rgb_mean, self.rgb_std, "DepthNetConfig")
 
     @property
     def stride(self) -> int:
