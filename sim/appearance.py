@@ -175,9 +175,13 @@ def randomize(cfg: SimConfig, seed: int) -> SimConfig:
         cfg.lens,
         smear_probability=u_or(r.lens_smear_probability, cfg.lens.smear_probability),
     )
+    blood = dataclasses.replace(
+        cfg.blood, strength=u_or(r.blood_strength, cfg.blood.strength)
+    )
     return dataclasses.replace(
         cfg,
         appearance=appearance,
+        blood=blood,
         light=light,
         imaging=imaging,
         tools=tools,

@@ -1,7 +1,7 @@
 """Simulator configuration: :class:`SimConfig`, loadable from YAML.
 
 A YAML file mirrors :class:`SimConfig`: one mapping per section (``camera``, ``light``,
-``appearance``, ``cut``, ``imaging``, ``randomization``, ``tracking``, ``paths``, ``tools``,
+``appearance``, ``cut``, ``blood``, ``imaging``, ``randomization``, ``tracking``, ``paths``, ``tools``,
 ``smoke``, ``blur``, ``lens``) plus ``seed``.
 Missing keys keep their defaults; unknown keys are refused (:class:`ConfigError`), so a
 typo never passes silently. ``config/sim_default.yaml`` lists every key with its default.
@@ -10,7 +10,8 @@ The sections are small frozen dataclasses, each checked in its ``__post_init__``
 beside the sections they belong with; all are importable from here:
 
 * ``sim/config_scope.py``: the endoscope (``camera``, ``light``, ``imaging``);
-* ``sim/config_tissue.py``: the tissue's look (``appearance``, ``cut``, ``randomization``);
+* ``sim/config_tissue.py``: the tissue's look (``appearance``, ``cut``, ``blood``,
+  ``randomization``);
 * ``sim/config_paths.py``: the camera's motion (``paths``, ``tracking``);
 * ``sim/config_effects.py``: what comes between lens and tissue (``tools``, ``smoke``,
   ``blur``, ``lens``).
@@ -39,7 +40,7 @@ from sim.config_effects import (
 )
 from sim.config_paths import MAX_FRAMES, MIN_CLEARANCE_MM, PathConfig, TrackingConfig
 from sim.config_scope import MAX_IMAGE_SIDE, CameraConfig, ImagingConfig, LightConfig
-from sim.config_tissue import AppearanceConfig, CutConfig, RandomizationConfig
+from sim.config_tissue import AppearanceConfig, BloodConfig, CutConfig, RandomizationConfig
 from sim.errors import ConfigError
 
 __all__ = [
@@ -48,6 +49,7 @@ __all__ = [
     "MAX_SMOKE_DENSITY_PER_MM",
     "MIN_CLEARANCE_MM",
     "AppearanceConfig",
+    "BloodConfig",
     "BlurConfig",
     "CameraConfig",
     "ConfigError",
@@ -82,6 +84,8 @@ class SimConfig:
     """Tissue appearance."""
     cut: CutConfig = field(default_factory=CutConfig)
     """Appearance of the faces a cut created."""
+    blood: BloodConfig = field(default_factory=BloodConfig)
+    """Blood film trickling below fresh cuts."""
     imaging: ImagingConfig = field(default_factory=ImagingConfig)
     """Sensor model and sampling."""
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)

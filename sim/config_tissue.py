@@ -1,8 +1,9 @@
 """Configuration of the tissue's look: mucosa, cut faces, and its randomisation.
 
 Sections ``appearance`` (:class:`AppearanceConfig`: the mucosa's BSDF and procedural
-texture), ``cut`` (:class:`CutConfig`: raw, bleeding tissue on the faces a cut created)
-and ``randomization`` (:class:`RandomizationConfig`: the ranges ``sim dataset`` draws
+texture), ``cut`` (:class:`CutConfig`: raw, bleeding tissue on the faces a cut created),
+``blood`` (:class:`BloodConfig`: a film of blood trickling downhill from fresh cuts) and
+``randomization`` (:class:`RandomizationConfig`: the ranges ``sim dataset`` draws
 appearance, light, sensor and effects from, once per render) of
 :class:`sim.config.SimConfig`.
 """
@@ -132,10 +133,69 @@ class CutConfig:
 
 
 @dataclass(frozen=True)
+class BloodConfig:
+    """A thin film of blood trickling downhill from the faces the current step cut
+    (``sim/blood.py``): a few seeded streaks following the steepest descent of gravity over
+    the surface, each ``width_mm`` wide and thinning out linearly to nothing at its length.
+    Off by default (the benchmark renders without it)."""
+
+    enabled: bool = False
+    """Draw blood streaks below each step's fresh cut faces (needs the phantom's labels)."""
+    strength: float = 0.85
+    """Film coverage where a streak leaves the cut (0 = off; same bytes as disabled)."""
+    streaks: tuple[int, int] = (2, 5)
+    """[min, max] streaks drawn per surgical step, from the cut's lower edge."""
+    film_length_mm: Range = (3.0, 10.0)
+    """[min, max] length a streak runs down the surface before it has thinned out, mm."""
+    width_mm: Range = (0.6, 1.6)
+    """[min, max] width of a streak, mm."""
+    rgb: tuple[float, float, float] = (0.3, 0.012, 0.01)
+    """Colour of the film (fresh blood), linear RGB in [0, 1]."""
+    roughness: float = 0.1
+    """Principled BSDF roughness of the film (smoother than mucosa: a wet, sharp highlight)."""
+    specular: float = 0.5
+    """Principled BSDF specular amount of the film."""
+    gravity: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    """Direction of gravity in the phantom's world (LPS, unit length not needed); default
+    +y = posterior: the patient lies supine."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, error=ConfigError, section="blood")
+        check(
+            0.0 <= self.strength <= 1.0, "blood.strength", f"must be in [0, 1], got {self.strength}"
+        )
+        a, b = self.streaks
+        check(0 <= a <= b <= 50, "blood.streaks", f"expected 0 <= min <= max <= 50, got {[a, b]}")
+        check_range("blood.film_length_mm", self.film_length_mm, 0.1, 100.0)
+        check_range("blood.width_mm", self.width_mm, 0.05, 20.0)
+        check(
+            all(0.0 <= x <= 1.0 for x in self.rgb),
+            "blood.rgb",
+            f"expected 3 values in [0, 1], got {list(self.rgb)}",
+        )
+        check(
+            0.0 < self.roughness <= 1.0,
+            "blood.roughness",
+            f"must be in (0, 1], got {self.roughness}",
+        )
+        check(
+            0.0 <= self.specular <= 1.0,
+            "blood.specular",
+            f"must be in [0, 1], got {self.specular}",
+        )
+        check(
+            sum(x * x for x in self.gravity) > 1e-12,
+            "blood.gravity",
+            f"must be a non-zero direction, got {list(self.gravity)}",
+        )
+
+
+@dataclass(frozen=True)
 class RandomizationConfig:
     """Ranges sampled once per render for training data (``sim dataset``); each a [min, max].
 
-    The effect ranges (``tools_fraction``, ``smoke_*``, ``blur_*``, ``lens_*``) default to
+    The effect ranges (``tools_fraction``, ``smoke_*``, ``blur_*``, ``lens_*``,
+    ``blood_*``) default to
     [0, 0], which keeps the section's own value (off unless configured there)."""
 
     enabled: bool = False
@@ -168,6 +228,8 @@ class RandomizationConfig:
     """Motion-blur shutter fraction (``blur.shutter``; 0 = off)."""
     lens_smear_probability: Range = (0.0, 0.0)
     """Chance per frame that a lens smear starts (``lens.smear_probability``; 0 = off)."""
+    blood_strength: Range = (0.0, 0.0)
+    """Blood film coverage (``blood.strength``; drawn only where ``blood.enabled``)."""
 
     def __post_init__(self) -> None:
         check_fields(self, error=ConfigError, section="randomization")
@@ -185,6 +247,7 @@ class RandomizationConfig:
             "smoke_density_per_mm": (0.0, MAX_SMOKE_DENSITY_PER_MM),
             "blur_shutter": (0.0, 1.0),
             "lens_smear_probability": (0.0, 1.0),
+            "blood_strength": (0.0, 1.0),
         }
         for name, (lo, hi) in bounds.items():
             check_range(f"randomization.{name}", getattr(self, name), lo, hi)

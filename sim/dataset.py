@@ -75,6 +75,7 @@ _DRAWN_KEYS = (
     "smoke.density_per_mm",
     "blur.shutter",
     "lens.smear_probability",
+    "blood.strength",
 )
 
 
@@ -107,7 +108,7 @@ def dataset_card(
         "master_seed": cfg["seed"],
         "bites": dataset["bites"],
         "ranges": cfg["randomization"],
-        "effects_base": {k: cfg[k] for k in ("tools", "smoke", "blur", "lens", "cut")},
+        "effects_base": {k: cfg[k] for k in ("tools", "smoke", "blur", "lens", "cut", "blood")},
         "drawn": drawn,
         "counts": {
             "phantoms": len(dataset["seeds"]),

@@ -1,6 +1,6 @@
 """The simulator's materials as Mitsuba dicts: wet mucosa and raw cut tissue (principled
-BSDFs over baked colour volumes, blended per face where a cut made the face) and the
-instruments' brushed steel. Pure functions of the configuration: the renderer loads them."""
+BSDFs over baked colour volumes, blended per face where a cut made the face), a film of
+blood over them (blended per face with its coverage) and the instruments' brushed steel. Pure functions of the configuration: the renderer loads them."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from chisel.core.geometry import make_transform
 from sim.appearance import TextureVolume
-from sim.config import AppearanceConfig, ToolsConfig
+from sim.config import AppearanceConfig, BloodConfig, ToolsConfig
 
 
 def principled_dict(mi: Any, texture: TextureVolume, appearance: AppearanceConfig) -> dict:
@@ -32,6 +32,16 @@ def principled_dict(mi: Any, texture: TextureVolume, appearance: AppearanceConfi
     }
 
 
+def blood_dict(blood: BloodConfig) -> dict:
+    """The blood film's principled BSDF: uniform colour, smoother than mucosa (wet)."""
+    return {
+        "type": "principled",
+        "base_color": {"type": "rgb", "value": [float(x) for x in blood.rgb]},
+        "roughness": float(blood.roughness),
+        "specular": float(blood.specular),
+    }
+
+
 def tissue_properties(
     mi: Any,
     appearance: AppearanceConfig,
@@ -39,27 +49,33 @@ def tissue_properties(
     cut: np.ndarray | None,
     cut_texture: TextureVolume | None,
     depth_only: bool,
+    blood: BloodConfig | None = None,
 ) -> Any:
     """The tissue mesh's Mitsuba properties: the mucosa's principled BSDF, blended per face
-    with the cut tissue's where faces are labelled cut (mesh attribute ``face_cut``); none
-    for a depth-only renderer."""
+    with the cut tissue's where faces are labelled cut (mesh attribute ``face_cut``), and
+    that blended with the blood film's (``blood``: mesh attribute ``face_blood``, the
+    film's coverage) when given; none for a depth-only renderer."""
     props = mi.Properties()
     if depth_only:
         return props
     assert texture is not None
-    mucosa = principled_dict(mi, texture, appearance)
-    if cut is None:
-        props["bsdf"] = mi.load_dict(mucosa)
-    else:
+    tissue = principled_dict(mi, texture, appearance)
+    if cut is not None:
         assert cut_texture is not None
-        props["bsdf"] = mi.load_dict(
-            {
-                "type": "blendbsdf",
-                "weight": {"type": "mesh_attribute", "name": "face_cut"},
-                "bsdf_0": mucosa,
-                "bsdf_1": principled_dict(mi, cut_texture, appearance),
-            }
-        )
+        tissue = {
+            "type": "blendbsdf",
+            "weight": {"type": "mesh_attribute", "name": "face_cut"},
+            "bsdf_0": tissue,
+            "bsdf_1": principled_dict(mi, cut_texture, appearance),
+        }
+    if blood is not None:
+        tissue = {
+            "type": "blendbsdf",
+            "weight": {"type": "mesh_attribute", "name": "face_blood"},
+            "bsdf_0": tissue,
+            "bsdf_1": blood_dict(blood),
+        }
+    props["bsdf"] = mi.load_dict(tissue)
     return props
 
 

@@ -36,6 +36,7 @@ from chisel.core.mitsuba_variant import choose_variant
 from chisel.io.manifest import named_path, read_json_manifest
 from chisel.io.sequence import Frame, SequenceWriter, depth_to_disk, imwrite
 from sim.appearance import TextureVolume, cut_texture_volume, randomize, texture_volume
+from sim.blood import blood_film_weight, fresh_cut_faces
 from sim.collision import TissueDistance
 from sim.config import SimConfig, config_to_dict
 from sim.effects import FrameEffects, smear_mask, smear_schedule
@@ -294,6 +295,24 @@ def load_cut_faces(phantom: Phantom, step: int, n_faces: int) -> np.ndarray | No
     return labels.astype(bool)
 
 
+def blood_films(
+    cfg: SimConfig, meshes: Seq[trimesh.Trimesh], labels: Seq[np.ndarray | None]
+) -> list[np.ndarray | None]:
+    """Per step, the blood film's per-face coverage below the faces that step cut
+    (:mod:`sim.blood`), or None (``blood.enabled`` off, depth only, no labels, step 0)."""
+    films: list[np.ndarray | None] = [None] * len(meshes)
+    if not cfg.blood.enabled or cfg.depth_only:
+        return films
+    for k in range(1, len(meshes)):
+        cut = labels[k]
+        if cut is None or not cut.any():
+            continue
+        fresh = fresh_cut_faces(meshes[k], cut, meshes[k - 1], labels[k - 1])
+        seed = int(np.random.default_rng([int(cfg.seed), 31, k]).integers(2**31))
+        films[k] = blood_film_weight(meshes[k], fresh, cfg.blood, seed)
+    return films
+
+
 def drawn_config(cfg: SimConfig) -> SimConfig:
     """The configuration a render uses and records: with ``randomization.enabled``,
     appearance, light and sensor drawn once with ``cfg.seed`` and randomisation switched
@@ -328,9 +347,9 @@ def render_phantom(
     phantom = load_phantom(phantom_dir, allow_outside=allow_outside_phantom)
     check_output_outside(out_dir, phantom.path, *{Path(s.mesh_path).parent for s in phantom.steps})
     meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
-    cuts = [load_cut_faces(phantom, k, len(m.faces)) for k, m in enumerate(meshes)]
-    if not cfg.cut.enabled or cfg.depth_only:
-        cuts = [None] * len(meshes)
+    labels = [load_cut_faces(phantom, k, len(m.faces)) for k, m in enumerate(meshes)]
+    films = blood_films(cfg, meshes, labels)
+    cuts = labels if cfg.cut.enabled and not cfg.depth_only else [None] * len(meshes)
     tools = tool_set(cfg.tools, cfg.seed) if cfg.tools.enabled else None
     planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval, tools=tools)
     variant = choose_variant(cfg.variant)
@@ -375,6 +394,7 @@ def render_phantom(
                 cut_faces=cuts[k],
                 cut_texture=cut_texture,
                 tools=step_tools,
+                blood_weight=films[k],
             )
             for p in todo:
                 meta = {
@@ -394,6 +414,8 @@ def render_phantom(
                     "cut_faces": 0 if (cut := cuts[k]) is None else int(cut.sum()),
                     "tools": p.tools is not None,
                 }
+                if (film := films[k]) is not None:
+                    meta["blood_faces"] = int((film > 0).sum())
                 render_sequence(renderer, p, tmp / p.name, meta, progress=progress)
             del renderer
         if not include_eval:

@@ -83,6 +83,11 @@ class MeshRenderer:
         faces render with ``cut_texture`` as base colour (Mitsuba: a ``blendbsdf`` whose
         weight is the ``face_cut`` mesh attribute; the fast integrator gathers the same
         label). All False or None: one material, as before.
+    blood_weight : optional (F,) float blood-film coverage in [0, 1] per face of ``mesh``
+        (:func:`sim.blood.blood_film_weight`); the faces' BSDF is blended with
+        ``cfg.blood``'s (Mitsuba: a ``blendbsdf`` over the ``face_blood`` mesh attribute;
+        the fast integrator gathers the same weight). All 0 or None: no film, the same
+        bytes as before.
     tools : optional instruments (one Mitsuba mesh each: ``roughconductor`` blended with
         ``tools.diffuse`` of a grey ``diffuse``, brushed steel), placed per
         frame with :meth:`place_tool`; frames then also return the visible depth and the
@@ -98,6 +103,7 @@ class MeshRenderer:
         cut_faces: np.ndarray | None = None,
         cut_texture: TextureVolume | None = None,
         tools: ToolSet | None = None,
+        blood_weight: np.ndarray | None = None,
     ) -> None:
         check_mesh(mesh, "mesh")
         self.cfg = cfg
@@ -117,6 +123,18 @@ class MeshRenderer:
                 raise ValueError("MeshRenderer: cut faces need a cut_texture")
         self.cut_faces = cut
         """(F,) bool cut-face labels in use, or None."""
+        blood = None
+        if blood_weight is not None and not self.depth_only:
+            blood = np.asarray(blood_weight, dtype=np.float32).ravel()
+            if len(blood) != len(mesh.faces) or not np.all((blood >= 0) & (blood <= 1)):
+                raise ValueError(
+                    f"MeshRenderer: blood_weight must be {len(mesh.faces)} values in [0, 1], "
+                    f"got {len(blood)}"
+                )
+            if not blood.any():
+                blood = None
+        self.blood_weight = blood
+        """(F,) float32 blood-film coverage in use, or None."""
         self.tools = tools
         self.mi, self.variant = load_mitsuba(cfg.variant)
         mi = self.mi
@@ -137,10 +155,20 @@ class MeshRenderer:
             mi.Vector3f(np.ascontiguousarray(dirs.reshape(-1, 3).T)) if self.jit else None
         )
 
-        props = tissue_properties(mi, cfg.appearance, texture, cut, cut_texture, self.depth_only)
+        props = tissue_properties(
+            mi,
+            cfg.appearance,
+            texture,
+            cut,
+            cut_texture,
+            self.depth_only,
+            cfg.blood if blood is not None else None,
+        )
         self.mesh = self._mi_mesh("tissue", mesh, props, with_normals=not self.depth_only)
         if cut is not None:
             self.mesh.add_attribute("face_cut", 1, self._buffer(cut.astype(np.float32)))
+        if blood is not None:
+            self.mesh.add_attribute("face_blood", 1, self._buffer(blood))
         self._tool_meshes: list = []
         if tools is not None:
             self._add_tools(tools, mesh)
@@ -178,6 +206,8 @@ class MeshRenderer:
                 tissue=self.mesh,
                 cut_faces=cut,
                 cut_texture=cut_texture,
+                blood_weight=blood,
+                blood=cfg.blood,
                 tools=tuple(self._tool_meshes),
                 tool_bsdf=self._tool_meshes[0].bsdf() if self._tool_meshes else None,
             )

@@ -44,7 +44,7 @@ import numpy as np
 
 from chisel.core.geometry import Camera
 from sim.appearance import TEXEL_LEVELS, TextureVolume
-from sim.config import ImagingConfig, LightConfig
+from sim.config import BloodConfig, ImagingConfig, LightConfig
 
 
 def undistorted_rays(camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -221,6 +221,9 @@ class SpotDirectIntegrator:
     cut_faces : optional (F,) bool per tissue face, True = a cut face, shaded with
         ``cut_texture`` as base colour instead of ``texture`` (same lobes; the scene's
         ``blendbsdf`` over the ``face_cut`` mesh attribute does the same).
+    blood_weight : optional (F,) float blood-film coverage per tissue face; the BSDF value
+        is blended ``(1 - w) f + w f_blood`` with ``blood``'s principled BSDF (uniform
+        colour), as the scene's ``blendbsdf`` over ``face_blood`` does.
     tools : other meshes in ``scene`` (instruments), shaded with ``tool_bsdf`` (Mitsuba's
         own BSDF object, evaluated on Mitsuba's surface interaction of the hit).
     """
@@ -239,6 +242,8 @@ class SpotDirectIntegrator:
         tissue: Any | None = None,
         cut_faces: np.ndarray | None = None,
         cut_texture: TextureVolume | None = None,
+        blood_weight: np.ndarray | None = None,
+        blood: BloodConfig | None = None,
         tools: tuple[Any, ...] = (),
         tool_bsdf: Any | None = None,
     ) -> None:
@@ -274,6 +279,17 @@ class SpotDirectIntegrator:
                 )
             self._cut = mi.UInt32(np.asarray(cut_faces, dtype=bool).astype(np.uint32))
             self.cut_texture = PackedTexture(mi, cut_texture)
+        self._blood = None
+        if blood_weight is not None and np.any(blood_weight):
+            if blood is None or len(blood_weight) != tissue.face_count():
+                raise ValueError(
+                    "SpotDirectIntegrator: blood_weight needs the blood config and one "
+                    f"value per tissue face ({tissue.face_count()})"
+                )
+            self._blood = mi.Float(np.asarray(blood_weight, dtype=np.float32))
+            self._blood_rgb = tuple(float(x) for x in blood.rgb)
+            self._blood_roughness = float(blood.roughness)
+            self._blood_eta = 2.0 / (1.0 - math.sqrt(0.08 * float(blood.specular))) - 1.0
         # The kernel interpolates the shading normal itself from the preliminary hit (the
         # BSDF and the light need nothing else), instead of Mitsuba's full surface
         # interaction: same normal to float precision, ~5 % less time per frame.
@@ -418,6 +434,18 @@ class SpotDirectIntegrator:
                 cut, self.cut_texture.eval(p, cut), self.texture.eval(p, tissue & ~cut)
             )
         f = principled_eval(dr, normal, -d_world, wo, base, self.roughness, self.eta)
+        if self._blood is not None:
+            w = dr.gather(mi.Float, self._blood, pi.prim_index, tissue)
+            f_blood = principled_eval(
+                dr,
+                normal,
+                -d_world,
+                wo,
+                mi.Color3f(*self._blood_rgb),
+                self._blood_roughness,
+                self._blood_eta,
+            )
+            f = f * (1.0 - w) + f_blood * w
         if is_tool is not None:
             # Instruments: Mitsuba's own BSDF (roughconductor) on its surface interaction.
             si = pi.compute_surface_interaction(ray, mi.RayFlags.All, is_tool)
