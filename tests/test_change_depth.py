@@ -234,7 +234,10 @@ def test_prior_pairs_label_removed_tissue_not_tracking_error(tmp_path: Path) -> 
     tracked = np.eye(4)
     tracked[2, 3] = 0.3
     for step, z in ((0, 20.0), (1, 26.0)):
-        with SequenceWriter(tmp_path / f"step_{step}", cam) as w:
+        # Both cameras within 0.3 mm of the world origin, which the reader would take for
+        # metres: the scene says its poses are mm on purpose.
+        meta = {"pose_units_checked": False}
+        with SequenceWriter(tmp_path / f"step_{step}", cam, meta=meta) as w:
             for i in range(2):
                 w.add(Frame(i, tracked, rgb=np.full((H, W, 3), 90, np.uint8),
                             depth_mm=np.full((H, W), z, np.float32), T_world_from_cam_true=true))  # fmt: skip

@@ -446,7 +446,11 @@ class Sequence:
         # The importers' units check, here too (metres read as mm failed much later);
         # skipped for a sequence imported with the check switched off on purpose.
         if meta.get("pose_units_checked", True) is not False:
-            fix = "a sequence stores mm: multiply the translations by 1000"
+            fix = (
+                "a sequence stores mm: multiply the translations by 1000; if they are mm in a "
+                "world whose origin lies within 1 mm of every camera, set meta.pose_units_checked "
+                "to false in sequence.json"
+            )
             check_pose_units(self.poses, "mm", str(self.path / "poses.txt"), "world", fix)
         self.true_poses: np.ndarray | None = None
         if _header_flag(header, "has_true_poses", header_path):
