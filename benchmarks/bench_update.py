@@ -164,6 +164,12 @@ def main() -> int:
     ap.add_argument("--preop-frames", type=int, default=60)
     ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--repeats", type=int, default=9)
+    ap.add_argument(
+        "--frame-ransac",
+        choices=("always", "until_prior"),
+        default="always",
+        help="UpdateConfig.frame_ransac for every update below (default: the config's)",
+    )
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
@@ -210,11 +216,13 @@ def main() -> int:
         )
         for i in range(args.frames)
     ]
+    ucfg = UpdateConfig(frame_ransac=args.frame_ransac)
+    print(f"frame_ransac: {args.frame_ransac}")
     k = 0.0371  # unknown monocular scale
     source = CallableDepth(lambda f: f.depth_mm * k)
-    update_step(model, cam, frames[:5], source, UpdateConfig())  # warm-up (JIT, Open3D)
+    update_step(model, cam, frames[:5], source, ucfg)  # warm-up (JIT, Open3D)
     t0 = time.perf_counter()
-    new, report = update_step(model, cam, frames, source, UpdateConfig())
+    new, report = update_step(model, cam, frames, source, ucfg)
     batch_s = time.perf_counter() - t0
     used = [f for f in report.frames if f.used]
     # Corrections beyond the tracking accuracy are not applied (tracked pose, scale only).
@@ -242,19 +250,21 @@ def main() -> int:
         BuildConfig(voxel_size_mm=args.voxel_mm, trunc_mm=4 * args.voxel_mm, max_miss_fraction=0.75),
         ct=ct_from_mesh(scene["preop"], "preop mesh"),
     )  # fmt: skip
-    upd_ct = ChiselUpdater(ct_model, cam, source)
+    upd_ct = ChiselUpdater(ct_model, cam, source, ucfg)
     upd_ct.begin_step()
     t0 = time.perf_counter()
     streamed_ct = [upd_ct.process(f) for f in frames]
     stream_ct_s = time.perf_counter() - t0
     print(f"update_frames_used_streaming_ct: {sum(r.used for r in streamed_ct)}/{args.frames}")
     print(f"update_fps_from_ct: {args.frames / stream_ct_s:.1f}")
-    upd = ChiselUpdater(model, cam, source)
+    upd = ChiselUpdater(model, cam, source, ucfg)
     upd.begin_step()
     t0 = time.perf_counter()
     streamed = [upd.process(f) for f in frames]
     stream_s = time.perf_counter() - t0
     print(f"update_frames_used_streaming: {sum(r.used for r in streamed)}/{args.frames}")
+    fell_back = sum(1 for r in streamed if r.registration and "fallback" in r.registration)
+    print(f"update_frames_tracked_pose_streaming: {fell_back}/{args.frames}")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"peak_rss_mib: {peak:.0f}")
     print(f"update_fps: {args.frames / stream_s:.1f}")

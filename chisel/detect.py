@@ -227,7 +227,7 @@ def register_frame(
     res = check_result(
         sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg, sim.scale
     )
-    if not res.ok:
+    if not res.ok and (cfg.frame_ransac == "always" or not prior):
         # Lost track (first frame, a jump): global RANSAC on this frame alone, then ICP.
         lo, hi = src.min(axis=0) - 5.0, src.max(axis=0) + 5.0
         tv, tn = renderer.surface_points(lo, hi)

@@ -42,6 +42,12 @@ class UpdateConfig:
     the next surface the model holds, fuse the new depth only where it holds nothing
     behind (:func:`chisel.carve.carve_first_layer`); "paper" = fuse the new depth at every
     changed pixel (the masked update alone)."""
+    frame_ransac: Literal["always", "until_prior"] = "always"
+    """When a frame's ICP fails: "always" = retry it with RANSAC + ICP on its own points
+    (~0.1 s at 320x256); "until_prior" = only while the hand-eye estimate has no prior
+    (lost track at the start), afterwards the frame keeps its tracked pose, scale only.
+    On a large removal most of a close view has changed, ICP fails on many frames and the
+    retries, not the update, set the streaming rate (benchmarks/bench_update.py)."""
     allow_unused_step: bool = False
     """When no frame of a step can be used (every registration failed): False = raise
     :class:`EmptyResultError`; True = keep the model as it was (the step counter still
@@ -52,6 +58,10 @@ class UpdateConfig:
         check_fields(self)
         if self.max_points < 100 or self.sequence_points < 100:
             raise InvalidInputError("max_points", "use at least 100 points per frame")
+        if self.frame_ransac not in ("always", "until_prior"):
+            raise InvalidInputError(
+                "frame_ransac", f"expected 'always' or 'until_prior', got {self.frame_ransac!r}"
+            )
         if self.carve not in ("deletion", "paper"):
             raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")
         if self.hand_eye_frames < 1:

@@ -343,3 +343,34 @@ def test_build_input_checks(scene: dict) -> None:
         build_preop_model(scene["tissue"], cam, P, masks=empty)
     with pytest.raises(InvalidInputError, match="trunc_mm"):
         BuildConfig(voxel_size_mm=1.0, trunc_mm=0.5)
+
+
+def test_frame_ransac_until_prior_skips_the_retry_once_the_hand_eye_is_known(
+    scene: dict, monkeypatch
+) -> None:
+    import chisel.detect as detect_mod
+
+    calls = [0]
+    real = detect_mod.register_global
+
+    def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls[0] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(detect_mod, "register_global", counting)
+    cam, model = scene["cam"], scene["model"]
+    fr = frames(scene["bitten"], cam, poses(4, seed=2))
+    # No ICP passes a fitness of 0.99: every frame fails and may be retried globally.
+    strict = RegistrationConfig(min_fitness=0.99)
+    for mode, fixed, expected in (("always", True, 4), ("until_prior", True, 0),
+                                  ("until_prior", False, 4)):  # fmt: skip
+        calls[0] = 0
+        cfg = UpdateConfig(registration=strict, frame_ransac=mode)
+        upd = ChiselUpdater(model, cam, GroundTruthDepth(), cfg)
+        upd.begin_step(hand_eye=np.eye(4), fixed=fixed)
+        reps = [upd.process(f) for f in fr]
+        assert calls[0] == expected, (mode, fixed, calls[0])
+        # Either way no frame is lost: it keeps its tracked pose and says so.
+        assert all(r.used and "fallback" in r.registration for r in reps)
+    with pytest.raises(InvalidInputError, match="frame_ransac"):
+        UpdateConfig(frame_ransac="never")  # type: ignore[arg-type]
