@@ -167,7 +167,7 @@ def main() -> int:
     ap.add_argument(
         "--frame-ransac",
         choices=("always", "until_prior"),
-        default="always",
+        default=UpdateConfig().frame_ransac,
         help="UpdateConfig.frame_ransac for every update below (default: the config's)",
     )
     args = ap.parse_args()

@@ -42,12 +42,13 @@ class UpdateConfig:
     the next surface the model holds, fuse the new depth only where it holds nothing
     behind (:func:`chisel.carve.carve_first_layer`); "paper" = fuse the new depth at every
     changed pixel (the masked update alone)."""
-    frame_ransac: Literal["always", "until_prior"] = "always"
-    """When a frame's ICP fails: "always" = retry it with RANSAC + ICP on its own points
-    (~0.1 s at 320x256); "until_prior" = only while the hand-eye estimate has no prior
-    (lost track at the start), afterwards the frame keeps its tracked pose, scale only.
-    On a large removal most of a close view has changed, ICP fails on many frames and the
-    retries, not the update, set the streaming rate (benchmarks/bench_update.py)."""
+    frame_ransac: Literal["always", "until_prior"] = "until_prior"
+    """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
+    points only while the hand-eye estimate has no prior (lost track at the start);
+    afterwards the frame keeps its tracked pose, scale only. "always" = every time
+    (~0.1 s per retry at 320x256). On a large removal most of a close view has changed:
+    ICP fails on many frames, and the retries set the streaming rate and landed on worse
+    registrations (benchmarks/bench_update.py, docs/updater.md)."""
     allow_unused_step: bool = False
     """When no frame of a step can be used (every registration failed): False = raise
     :class:`EmptyResultError`; True = keep the model as it was (the step counter still

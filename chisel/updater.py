@@ -139,7 +139,8 @@ class ChiselUpdater:
     The model passed in is copied; ``upd.model`` is the current one. Tracking error is
     modelled as a constant camera-side (hand-eye) correction F, ``T_corrected =
     T_tracked @ F``, plus per-frame jitter (:class:`chisel.detect.HandEye`, kept across
-    steps). A frame whose ICP fails is retried with RANSAC + ICP on its own points.
+    steps). A frame whose ICP fails is retried with RANSAC + ICP on its own points while
+    F has no prior (``UpdateConfig.frame_ransac``).
     """
 
     def __init__(
