@@ -33,6 +33,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from phantoms.errors import PhantomError  # noqa: E402
 from phantoms.generate import generate  # noqa: E402
 from phantoms.params import PhantomConfig  # noqa: E402
 from sim.dataset import parse_seeds  # noqa: E402
@@ -111,7 +112,8 @@ def main() -> None:
     settings = workflow_render_settings(args.config)
     rc, pc = settings["render"], settings["phantom"]
     t0 = time.perf_counter()
-    step5 = []
+    step5: list[float] = []
+    failed_seeds: list[int] = []
     print(f"cpu_simd: {cpu_simd()}")
     print(f"procedure: {args.procedure}")
     print(f"image: {rc['width']}x{rc['height']}")
@@ -128,7 +130,14 @@ def main() -> None:
                 **({"mucosa_mm": float(pc["mucosa_mm"])} if "mucosa_mm" in pc else {}),
                 **({"mesh_edge_mm": float(pc["mesh_edge_mm"])} if "mesh_edge_mm" in pc else {}),
             )
-            generate(cfg, out)
+            try:
+                generate(cfg, out)
+            except PhantomError as exc:
+                # A seed whose phantom cannot be built is reported, never dropped silently.
+                print(f"# seed {seed}: no phantom: {exc}")
+                print(f"seed_{seed}_ok: False")
+                failed_seeds.append(seed)
+                continue
             manifest = json.loads((out / "phantom.json").read_text())
             removed = [s["removed_volume_mm3"] for s in manifest["steps"][1:]]
             errors = no_update_errors(out, rc["width"], rc["height"], rc["eval_poses"])
@@ -140,7 +149,8 @@ def main() -> None:
             sys.stdout.flush()
             step5.append(errors[4] if len(errors) >= 5 else errors[-1])
     print(f"elapsed_s: {time.perf_counter() - t0:.1f}")
-    print(f"no_update_step5_mm_median: {float(np.median(step5)):.3f}")
+    print(f"seeds_without_phantom: {len(failed_seeds)}")
+    print(f"no_update_step5_mm_median: {float(np.median(step5)) if step5 else float('nan'):.3f}")
 
 
 if __name__ == "__main__":
