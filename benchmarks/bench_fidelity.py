@@ -131,7 +131,8 @@ def main() -> int:
     parser.add_argument("--cores", type=int, default=2)
     args = parser.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-fidelity-"))
-    seeds = [f"table_seeds={parse_seeds(args.seeds)}"] if args.seeds else []
+    wanted = parse_seeds(args.seeds) if args.seeds else None
+    seeds = [f"table_seeds={wanted}"] if wanted else []
     ran = run_workflow("table", workdir, args.configfile, args.cores, seeds)
     if ran is None:
         return 1
@@ -140,7 +141,7 @@ def main() -> int:
     per_seed: dict[int, dict[str, float]] = {}
     for path in sorted(results.glob("seed_*/base/metrics.json")):
         seed = int(path.parent.parent.name.split("_", 1)[1])
-        if args.seeds and seed not in parse_seeds(args.seeds):
+        if wanted is not None and seed not in wanted:
             continue
         per_seed[seed] = seed_figures(json.loads(path.read_text()))
     print(f"experiment: {experiment}")

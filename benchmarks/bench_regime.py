@@ -42,13 +42,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_render import cpu_simd  # noqa: E402
 
 
-def _import_scoring():
-    """chisel's evaluation functions (RoiBox, correspondence_error, render_depths)."""
-    from chisel.eval.metrics import RoiBox, correspondence_error, render_depths
-
-    return RoiBox, correspondence_error, render_depths
-
-
 def workflow_render_settings(config_path: Path) -> dict:
     """The workflow's render settings (image size, evaluation poses) and phantom options."""
     cfg = yaml.safe_load(config_path.read_text())
@@ -61,6 +54,7 @@ def no_update_errors(phantom_dir: Path, width: int, height: int, n_eval: int) ->
     Evaluation poses and camera as ``python -m sim render --seed SEED --width W --height H
     --eval-poses N`` makes them; returns one value per step 1..N.
     """
+    from chisel.eval.metrics import RoiBox, correspondence_error, render_depths
     from sim.collision import TissueDistance
     from sim.config import load_config, replace_in
     from sim.imaging import field_stop_mask
@@ -68,7 +62,6 @@ def no_update_errors(phantom_dir: Path, width: int, height: int, n_eval: int) ->
     from sim.phantom import load_mesh, load_phantom
     from sim.pipeline import path_target
 
-    RoiBox, correspondence_error, render_depths = _import_scoring()
     phantom = load_phantom(phantom_dir)
     cfg = replace_in(
         load_config(None),

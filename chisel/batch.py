@@ -66,6 +66,8 @@ class StepPlan:
     """How F was found (or why not), for the step's report."""
     cfg: UpdateConfig
     """The step's configuration: ``register`` is off when F was rejected."""
+    solve_for_scale: bool
+    """The estimates are up to scale (:func:`chisel.detect.scale_free`)."""
 
 
 def plan_step(
@@ -82,6 +84,7 @@ def plan_step(
     half-updated result.
     """
     metric = is_metric(depth_source)
+    solve_for_scale = scale_free(cfg, depth_source)
     poses = [
         check_pose_in_model(model, f.T_world_from_cam, f"frame {f.index} pose") for f in frames
     ]
@@ -101,13 +104,13 @@ def plan_step(
         # Every render exists when registering (rendered above for the step).
         scales, F, seq_reg, step_cfg = _register_step(
             renderer, camera, poses, estimates, cast(list[np.ndarray], renders), cfg,
-            scale_free(cfg, depth_source),
+            solve_for_scale,
         )  # fmt: skip
     inputs = [
         FrameInput(f, T, E, R, s)
         for f, T, E, R, s in zip(frames, poses, estimates, renders, scales, strict=True)
     ]
-    return StepPlan(inputs, renderer, F, seq_reg, step_cfg)
+    return StepPlan(inputs, renderer, F, seq_reg, step_cfg, solve_for_scale)
 
 
 def _register_step(
@@ -169,14 +172,19 @@ def update_step(
     if not frames:
         raise InvalidInputError("frames", "a step needs at least one frame")
     plan = plan_step(model, camera, frames, depth_source, cfg)
-    step_cfg, solve_for_scale = plan.cfg, scale_free(plan.cfg, depth_source)
+    step_cfg = plan.cfg
     hand_eye = HandEye()
     if plan.hand_eye is not None:
         hand_eye.F, hand_eye.fixed = plan.hand_eye, True
     dets = []
     for inp in progress(plan.inputs) if progress is not None else plan.inputs:
         ctx = Context(
-            camera, plan.renderer, step_cfg, solve_for_scale, hand_eye.current(), hand_eye.prior
+            camera,
+            plan.renderer,
+            step_cfg,
+            plan.solve_for_scale,
+            hand_eye.current(),
+            hand_eye.prior,
         )
         det = detect(inp, ctx)
         hand_eye.learn(det)

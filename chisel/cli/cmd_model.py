@@ -299,19 +299,20 @@ def _read_ct_arrays(path: Path, kind: str = "auto"):  # noqa: ANN202 - CtVolume 
     import trimesh
 
     from chisel.io import ct as ct_io
+    from chisel.io.meshfile import READABLE_MESH_SUFFIXES
 
     if not path.is_file():
         raise InvalidInputError(path, "CT file is missing")
     name = path.name.lower()
     if name.endswith(ct_io.VOLUME_SUFFIXES):
         return ct_io.read_ct_volume(path, kind)  # type: ignore[arg-type]
-    if name.endswith(ct_io.MESH_SUFFIXES):
+    if name.endswith(READABLE_MESH_SUFFIXES):
         mesh = ct_io.load_ct_surface(path)
         if not isinstance(mesh, trimesh.Trimesh):
             raise InvalidInputError(path, "not a triangle mesh")
         return mesh
     raise InvalidInputError(
-        path, f"unknown CT type; expected one of {ct_io.VOLUME_SUFFIXES + ct_io.MESH_SUFFIXES}"
+        path, f"unknown CT type; expected one of {ct_io.VOLUME_SUFFIXES + READABLE_MESH_SUFFIXES}"
     )
 
 

@@ -60,7 +60,6 @@ from chisel.io.limits import (
 )
 from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
 
-MESH_SUFFIXES = READABLE_MESH_SUFFIXES
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
 NRRD_SUFFIXES = (".nrrd", ".nhdr")
 VOLUME_SUFFIXES = NIFTI_SUFFIXES + NRRD_SUFFIXES
@@ -518,8 +517,9 @@ def load_ct_surface(
             return surface_from_volume(
                 vol.data, vol.T_world_from_voxel, vol.kind, iso_level, source=str(path)
             )
-    if name.endswith(MESH_SUFFIXES):
-        return read_mesh_file(path, "CT segmentation mesh", MESH_SUFFIXES)
+    if name.endswith(READABLE_MESH_SUFFIXES):
+        return read_mesh_file(path, "CT segmentation mesh", READABLE_MESH_SUFFIXES)
     raise InvalidInputError(
-        path, f"unknown CT segmentation type; expected one of {MESH_SUFFIXES + VOLUME_SUFFIXES}"
+        path,
+        f"unknown CT segmentation type; expected one of {READABLE_MESH_SUFFIXES + VOLUME_SUFFIXES}",
     )

@@ -1,4 +1,5 @@
 import os
+import shlex
 import sys
 
 from snakemake.utils import validate
@@ -224,8 +225,6 @@ def extra_depth_inputs(wc):
 
 
 def extra_depth_options(wc, input):
-    import shlex
-
     spec = EXTRA_DEPTH[wc.extra]
     if "torchscript" in spec:
         opts = ["--torchscript", str(input.torchscript)]
@@ -251,8 +250,6 @@ def dataset_seeds():
 
 
 def dataset_options(wc=None):
-    import shlex
-
     opts = []
     for key in ("bites", "frames", "preop_frames", "width", "height", "spp", "seed", "config"):
         if key in DATASET:
