@@ -132,8 +132,8 @@ def main() -> int:
     args = parser.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-fidelity-"))
     wanted = parse_seeds(args.seeds) if args.seeds else None
-    seeds = [f"table_seeds={wanted}"] if wanted else []
-    ran = run_workflow("table", workdir, args.configfile, args.cores, seeds)
+    overrides = {"table_seeds": wanted} if wanted else None
+    ran = run_workflow("table", workdir, args.configfile, args.cores, overrides)
     if ran is None:
         return 1
     experiment, wall_s = ran

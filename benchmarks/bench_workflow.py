@@ -13,21 +13,36 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
+
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_workflow(
-    target: str, workdir: Path, configfile: Path, cores: int = 2, config: list[str] | None = None
+    target: str,
+    workdir: Path,
+    configfile: Path,
+    cores: int = 2,
+    overrides: Mapping[str, Any] | None = None,
 ) -> tuple[str, float] | None:
     """Run a workflow target in ``workdir``: (experiment name, wall seconds), or None after
-    printing ``workflow_failed`` and the log's tail."""
+    printing ``workflow_failed`` and the log's tail.
+
+    overrides : config keys laid over ``configfile``, written as a second YAML config file
+    (``--config KEY=[0, 1]`` would hand Snakemake's schema a list of strings).
+    """
     # The target goes before --configfile, which takes several values.
     cmd = [sys.executable, "-m", "snakemake", target, "-s", str(ROOT / "Snakefile")]
     cmd += ["-d", str(workdir), "--cores", str(cores), "--configfile", str(configfile.resolve())]
-    if config:
-        cmd += ["--config", *config]
+    if overrides:
+        workdir.mkdir(parents=True, exist_ok=True)
+        overlay = workdir / "bench_overrides.yaml"
+        overlay.write_text(yaml.safe_dump(dict(overrides)))
+        cmd.append(str(overlay.resolve()))
     t0 = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True)
     wall_s = time.perf_counter() - t0

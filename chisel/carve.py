@@ -44,10 +44,12 @@ def _voxel_at(A, z, rx, ry, nx, ny, nz):
 
 @numba.njit(parallel=True, cache=True)
 def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_mm, trunc_mm, tol_mm,
-                max_layers, z0, z1):  # fmt: skip
+                max_layers, precise, z0, z1):  # fmt: skip
     # Read-only pass: per changed pixel, its status and the depth intervals [z0, z1) of the
     # layers to delete (up to ``max_layers``). No voxel is written here, so the result does
     # not depend on the order the pixels are visited in.
+    # Not ``precise`` (a noisy estimate): one layer at most, deleted only when the estimate
+    # lies past the middle of the cavity behind it, and no new surface inside held tissue.
     H, W = mask.shape
     nx, ny, nz = shape[0], shape[1], shape[2]
     status = np.zeros((H, W), dtype=np.uint8)
@@ -88,13 +90,18 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_m
                 start = z
                 # Through the tissue layer, to the free space behind it.
                 ok = False
+                held = True  # the model holds what lies behind the layer's front
                 while True:
                     z += dz
                     if z > ze + tol_mm:
                         break  # the estimate ends inside this tissue: new surface there
                     idx = _voxel_at(A, z, rx, ry, nx, ny, nz)
                     if idx < 0 or weight[idx] <= 0.0:
-                        break  # nothing known behind
+                        # Nothing known behind. Past more held tissue than a truncation
+                        # band (a sweep-only model's), it is the CT's solid tissue at the
+                        # edge of its grid: still no place for a noisy estimate's cut.
+                        held = z - start > trunc_mm + voxel_mm
+                        break
                     if tsdf[idx] > 0.0:
                         ok = True
                         break
@@ -103,11 +110,10 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_m
                 # pixel the mask's closing added, would otherwise be deleted while the
                 # estimate still lies on it.
                 if not ok or ze < z + 0.5 * tol_mm:
+                    if n == 0 and held and not precise:
+                        st = CARVE_NONE  # a noisy estimate cannot place a cut inside tissue
                     break
-                z0[v, u, n] = start
-                z1[v, u, n] = z
-                n += 1
-                st = CARVE_DELETED
+                back = z
                 # Through the cavity to the next surface the model holds.
                 nxt = False
                 while True:
@@ -118,7 +124,16 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_m
                     if tsdf[idx] < 0.0:
                         nxt = True
                         break
-                if not nxt or z >= ze - tol_mm:
+                if nxt and not precise and ze < 0.5 * (start + z):
+                    # Nearer the layer's front than the surface its removal would reveal.
+                    if n == 0:
+                        st = CARVE_NONE
+                    break
+                z0[v, u, n] = start
+                z1[v, u, n] = back
+                n += 1
+                st = CARVE_DELETED
+                if not nxt or z >= ze - tol_mm or not precise:
                     break  # the estimate agrees with the next surface: deletion stops here
             status[v, u] = st
     return status
@@ -199,6 +214,7 @@ def carve_first_layer(
     tol_mm: float,
     reset: np.ndarray | None = None,
     max_layers: int = 4,
+    precise: bool = True,
 ) -> tuple[np.ndarray, int]:
     """Deletion-first carving of one frame's change, **in place**; returns (status, voxels).
 
@@ -211,6 +227,13 @@ def carve_first_layer(
     (at most ``max_layers``). Where the model holds nothing behind (unobserved voxels,
     or solid tissue reaching beyond the estimate) the pixel's status is
     :data:`CARVE_FUSE`: the caller fuses the new depth there (the paper's masked update).
+
+    ``precise=False`` is for an estimate noisier than the threshold (a network's): it can
+    say "deeper here" but not where. Then at most one layer is deleted, only when the
+    estimate lies past the middle of the cavity between the layer's front and the next
+    surface the model holds, and a pixel whose estimate ends inside tissue the model holds
+    is left alone (:data:`CARVE_NONE`) instead of fused as a partial cut; only where the
+    model holds nothing behind is the new depth fused.
 
     m_t, m_new : (H, W) float32 z-depth of the model (at step start) and the estimate M',
         mm, NaN invalid; mask : (H, W) bool change mask; tol_mm : the frame's change
@@ -234,7 +257,7 @@ def carve_first_layer(
     status = _carve_plan(
         tsdf, weight, shape, A, rays, clean(m_t), clean(m_new), np.asarray(mask, bool),
         dz_unit, float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
-        int(max_layers), z0, z1,
+        int(max_layers), bool(precise), z0, z1,
     )  # fmt: skip
     use_reset = reset is not None
     if reset is not None and (reset.shape != model.shape or reset.dtype != np.uint8):

@@ -182,7 +182,8 @@ def load_change_aware_source(checkpoint: str | Path) -> DepthSource:
         if exc.name not in ("chisel.depth", "chisel.depth.change_source", "chisel"):
             raise
         raise InvalidInputError(
-            "--depth-source", "change-aware depth needs the chisel.depth package, not installed here"
+            "--depth-source",
+            "change-aware depth needs the chisel.depth package, not installed here",
         ) from None
     return module.load_change_aware_source(Path(checkpoint))
 

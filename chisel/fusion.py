@@ -302,9 +302,7 @@ def _integrate_kernel(
                             continue
                         if int(gx) != tx or int(gy) != ty:
                             continue
-                        u, v = nearest_pixel(
-                            xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H
-                        )
+                        u, v = nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H)
                         if u < 0:
                             continue
                         w = pix_w[v, u] if use_weight else 1.0

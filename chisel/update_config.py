@@ -42,6 +42,13 @@ class UpdateConfig:
     the next surface the model holds, fuse the new depth only where it holds nothing
     behind (:func:`chisel.carve.carve_first_layer`); "paper" = fuse the new depth at every
     changed pixel (the masked update alone)."""
+    noisy_carve: bool = True
+    """Deletion carving of a frame whose estimate is noisier than the change threshold (its
+    noise-adaptive threshold above ``change.threshold_mm``; a network's depth): delete at
+    most one layer, only where the estimate lies past the middle of the cavity behind it,
+    and never fuse a new surface inside tissue the model holds (a partial cut needs depth
+    precise to the threshold): docs/updater.md. Exact depth keeps the 1 mm threshold and
+    is carved as before. False = every frame carved as precise."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
     points only while the hand-eye estimate has no prior (lost track at the start);

@@ -53,6 +53,15 @@ from chisel.update_config import UpdateConfig
 log = logging.getLogger(__name__)
 
 
+def is_precise(threshold_mm: float, cfg: UpdateConfig) -> bool:
+    """Whether a frame's estimate can place a surface to within the change threshold: its
+    noise did not raise its threshold (:func:`chisel.change.frame_threshold`) above
+    ``cfg.change.threshold_mm``, or ``cfg.noisy_carve`` is off."""
+    if not cfg.noisy_carve:
+        return True
+    return threshold_mm <= cfg.change.threshold_mm * (1.0 + 1e-6)
+
+
 def fuse(
     model: TsdfModel,
     camera: Camera,
@@ -83,7 +92,7 @@ def fuse(
         # depth only where the model holds nothing behind.
         status, voxels_deleted = carve_first_layer(
             model, camera, det.T_world_from_cam, det.m_t, det.m_prime, mask, det.threshold_mm,
-            reset=reset,
+            reset=reset, precise=is_precise(det.threshold_mm, cfg),
         )  # fmt: skip
         deleted_px = int((status == CARVE_DELETED).sum())
         fuse_mask = mask & (status == CARVE_FUSE)

@@ -182,3 +182,69 @@ def test_a_lamella_thinner_than_the_threshold_is_not_deleted_where_it_still_stan
     ).render_depth(CAM, T)
     status, n = carve_first_layer(model, CAM, T, depth, behind, behind > depth + 1.0, tol_mm=1.0)
     assert n > 0 and (status == CARVE_DELETED).any()
+
+
+def _walls_model(walls: list[tuple[float, float]]) -> TsdfModel:
+    """A whole-CT model of a block with air from z -12 to 20 except the given walls (z ranges)."""
+    block = _box([-14.0, -14.0, -16.0], [14.0, 14.0, 24.0])
+    edges = [-12.0, *[z for w in walls for z in w], 20.0]
+    solid = block
+    for lo, hi in zip(edges[::2], edges[1::2], strict=True):
+        solid = solid.difference(_box([-10, -10, lo], [10, 10, hi]), engine="manifold")
+    return build_preop_model(
+        None, CAM, _poses(8, seed=1), BuildConfig(0.25, 1.0), ct=ct_from_mesh(solid)
+    )
+
+
+def _carve_at(model: TsdfModel, estimate_z_mm: float, precise: bool) -> tuple[np.ndarray, int]:
+    """Carve a frame looking down +z from the origin whose estimate is the plane z = const,
+    with every pixel in view of the first wall marked changed."""
+    from chisel.carve import carve_first_layer
+
+    T = look_at(np.zeros(3), np.array([0.0, 0.0, 10.0]), np.array([0.0, -1.0, 0.0]))
+    m_t = np.full(CAM.shape, 10.0, np.float32)  # the first wall's front, z-depth
+    est = np.full(CAM.shape, estimate_z_mm, np.float32)
+    mask = np.zeros(CAM.shape, bool)
+    mask[30:50, 38:58] = True  # a central patch: its rays stay inside the walls' 20 x 20 mm
+    return carve_first_layer(model, CAM, T, m_t, est, mask, tol_mm=1.0, precise=precise)
+
+
+def _freed(before: TsdfModel, after_tsdf: np.ndarray, z_lo: float, z_hi: float) -> int:
+    """Voxels inside a wall (z in (z_lo, z_hi), near the axis) that were tissue and are free."""
+    P = _points(before)
+    sel = (P[..., 2] > z_lo) & (P[..., 2] < z_hi) & (np.max(np.abs(P[..., :2]), axis=-1) < 1.5)
+    return int(((before.tsdf < 0) & (after_tsdf > 0) & sel).sum())
+
+
+def test_a_noisy_estimate_places_no_cut_inside_held_tissue() -> None:
+    """An estimate that ends inside a 4 mm wall: precise depth is a partial cut (fused there);
+    a noisy estimate (a network's) cannot place one and leaves the wall alone."""
+    from chisel.carve import CARVE_FUSE, CARVE_NONE
+
+    model = _walls_model([(10.0, 14.0)])
+    for precise, expected in ((True, CARVE_FUSE), (False, CARVE_NONE)):
+        m = model.copy()
+        status, n = _carve_at(m, 12.0, precise)
+        assert n == 0
+        assert np.all(status[30:50, 38:58] == expected), (precise, np.unique(status[30:50, 38:58]))
+
+
+def test_a_noisy_estimate_deletes_one_layer_and_only_past_the_middle_of_the_cavity() -> None:
+    # Two 0.8 mm lamellae at z = 10 and z = 14, air behind to z = 20.
+    from chisel.carve import CARVE_DELETED, CARVE_NONE
+
+    model = _walls_model([(10.0, 10.8), (14.0, 14.8)])
+    # Estimate at z 11.6: past the first lamella's back face, but nearer its front than the
+    # next surface (z 14): precise depth deletes the lamella, a noisy estimate does not.
+    for precise, expected in ((True, CARVE_DELETED), (False, CARVE_NONE)):
+        m = model.copy()
+        status, _ = _carve_at(m, 11.6, precise)
+        assert np.all(status[30:50, 38:58] == expected), precise
+        assert (_freed(model, m.tsdf, 9.8, 11.0) > 0) == precise
+    # Estimate at z 20, past both: precise depth deletes both lamellae, a noisy one the first.
+    for precise in (True, False):
+        m = model.copy()
+        status, _ = _carve_at(m, 20.0, precise)
+        assert np.all(status[30:50, 38:58] == CARVE_DELETED)
+        assert _freed(model, m.tsdf, 9.8, 11.0) > 0
+        assert (_freed(model, m.tsdf, 13.8, 15.0) > 0) == precise
