@@ -27,6 +27,9 @@ class FrameReport:
     """The change threshold used for this frame, mm (see ``ChangeConfig.noise_k``)."""
     deleted_px: int = 0
     """Changed pixels whose first layer was deleted up to a surface the model holds."""
+    uncarved_px: int = 0
+    """Changed pixels that deletion-first carving left alone (``chisel.carve.CARVE_NONE``);
+    they are not in the carved ``mask`` nor in ``changed_fraction``."""
     voxels_deleted: int = 0
     """Voxels set free by deletion-first carving (included in ``voxels_updated``)."""
     mask: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -45,6 +48,7 @@ class FrameReport:
             "unconfirmed_px": int(self.unconfirmed_px),
             "threshold_mm": None if not np.isfinite(self.threshold_mm) else self.threshold_mm,
             "deleted_px": int(self.deleted_px),
+            "uncarved_px": int(self.uncarved_px),
             "voxels_deleted": int(self.voxels_deleted),
         }
 

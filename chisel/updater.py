@@ -30,7 +30,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from chisel.carve import CARVE_DELETED, CARVE_FUSE, carve_first_layer
+from chisel.carve import CARVE_DELETED, CARVE_FUSE, CARVE_NONE, carve_first_layer
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, check_rigid
 from chisel.depth_source import estimate_depth, is_metric
@@ -85,7 +85,7 @@ def fuse(
     if det.mask is None or det.m_prime is None or det.m_t is None or det.T_world_from_cam is None:
         raise InvalidInputError("detection", f"frame {det.index}: a used detection has no maps")
     mask = fuse_mask = det.mask
-    deleted_px = voxels_deleted = 0
+    deleted_px = voxels_deleted = uncarved_px = 0
     if cfg.carve == "deletion" and mask.any():
         # Deletion first: where the model already holds the surface behind the
         # removed layer, delete the layer and keep that surface; fuse the new
@@ -96,6 +96,10 @@ def fuse(
         )  # fmt: skip
         deleted_px = int((status == CARVE_DELETED).sum())
         fuse_mask = mask & (status == CARVE_FUSE)
+        # The frame's change is what it carved: a pixel that carving left alone (a noisy
+        # estimate ending inside held tissue, say) was judged unchanged after all.
+        uncarved_px = int((mask & (status == CARVE_NONE)).sum())
+        mask = mask & (status != CARVE_NONE)
     lateral = cv2.distanceTransform(fuse_mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     voxels_updated = voxels_deleted + integrate(
         model, camera, det.T_world_from_cam, det.m_prime, pixel_weight=fuse_mask, rgb=rgb,
@@ -112,6 +116,7 @@ def fuse(
         unconfirmed_px=det.unconfirmed_px,
         threshold_mm=det.threshold_mm,
         deleted_px=deleted_px,
+        uncarved_px=uncarved_px,
         voxels_deleted=voxels_deleted,
         mask=mask if keep_mask else None,
     )
