@@ -20,6 +20,7 @@ from chisel.change import (
     frame_threshold,
     impute,
     multiview_support,
+    shift_to_render,
     solve_scale,
     warp_depth,
 )
@@ -67,6 +68,9 @@ class Detection:
     registration: dict | None = None
     threshold_mm: float = float("nan")
     """The frame's change threshold, mm (see ``ChangeConfig.noise_k``)."""
+    shift_mm: float = 0.0
+    """Depth shift of a relative estimate (``UpdateConfig.relative_depth``), mm: M' is
+    ``a * scale * estimate + shift_mm`` with ``a`` near 1 (fitted with the shift)."""
     T_world_from_cam: np.ndarray | None = field(default=None, repr=False)
     """(4, 4) the pose the maps are expressed in (the tracked pose)."""
     mask: np.ndarray | None = field(default=None, repr=False)
@@ -181,6 +185,13 @@ def detect(inp: FrameInput, ctx: Context) -> Detection:
         m_raw, scale, reg = register_frame(T, inp.estimate, R, inp.scale0, ctx)
     except EmptyResultError as exc:
         return Detection(index=inp.frame.index, used=False, reason=str(exc))
+    if ctx.solve_for_scale and cfg.relative_depth == "scale_shift":
+        # After registration, so that the shift cannot absorb a pose error: fitted to the
+        # render, a shift absorbs the pose error and biases the registration.
+        shifted, shift, a = shift_to_render(R, m_raw, cfg.change.threshold_mm)
+        if shift != 0.0:
+            m_raw, shift_mm = (a * shifted).astype(np.float32), a * shift
+    shift_mm = 0.0
     correction = None
     if reg is not None and reg.ok and "rejected" not in reg.extra:
         correction = invert_rigid(T) @ reg.T_model_from_est @ T
@@ -192,6 +203,7 @@ def detect(inp: FrameInput, ctx: Context) -> Detection:
         scale=scale,
         registration=None if reg is None else reg.to_dict(),
         threshold_mm=threshold_mm,
+        shift_mm=shift_mm,
         T_world_from_cam=T,
         mask=change_mask(m_prime, R, cfg.change, threshold_mm),
         m_prime=m_prime,

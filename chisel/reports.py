@@ -19,6 +19,8 @@ class FrameReport:
     reason: str = ""
     scale: float = float("nan")
     registration: dict | None = None
+    shift_mm: float = 0.0
+    """Depth shift fitted to a relative estimate after its scale, mm (0 = none)."""
     changed_fraction: float = 0.0
     voxels_updated: int = 0
     unconfirmed_px: int = 0
@@ -43,6 +45,7 @@ class FrameReport:
             "reason": self.reason,
             "scale": None if not np.isfinite(self.scale) else float(self.scale),
             "registration": self.registration,
+            "shift_mm": float(self.shift_mm),
             "changed_fraction": float(self.changed_fraction),
             "voxels_updated": int(self.voxels_updated),
             "unconfirmed_px": int(self.unconfirmed_px),

@@ -30,6 +30,11 @@ class UpdateConfig:
     """Solve the depth's scale (robust median of ratios to the render, then jointly with
     the pose in per-frame ICP): "auto" = unless the depth source declares metric depth
     (``is_metric``), whose scale is 1."""
+    relative_depth: Literal["scale", "scale_shift"] = "scale_shift"
+    """What a relative estimate (one whose scale is solved) is known up to: "scale_shift" =
+    a scale and a shift, fitted robustly to the render per frame
+    (:func:`chisel.change.shift_to_render`; how monocular networks are evaluated, Ranftl et
+    al.); "scale" = a scale alone (the paper)."""
     max_points: int = 1500
     """About this many pixels (a regular stride) per frame in per-frame registration."""
     sequence_points: int = 500
@@ -69,6 +74,11 @@ class UpdateConfig:
         if self.frame_ransac not in ("always", "until_prior"):
             raise InvalidInputError(
                 "frame_ransac", f"expected 'always' or 'until_prior', got {self.frame_ransac!r}"
+            )
+        if self.relative_depth not in ("scale", "scale_shift"):
+            raise InvalidInputError(
+                "relative_depth",
+                f"expected 'scale' or 'scale_shift', got {self.relative_depth!r}",
             )
         if self.carve not in ("deletion", "paper"):
             raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")

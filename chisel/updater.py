@@ -110,6 +110,7 @@ def fuse(
         index=det.index,
         used=True,
         scale=det.scale,
+        shift_mm=det.shift_mm,
         registration=det.registration,
         changed_fraction=float(mask.sum() / max(int(valid.sum()), 1)),
         voxels_updated=voxels_updated,

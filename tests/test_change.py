@@ -128,3 +128,39 @@ def test_surface_index_lookup_matches_tree() -> None:
         assert np.all(i_fast[~hit] == len(pts))
     far = fast.query(np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0]]), 1.5)
     assert np.all(np.isinf(far[0]))
+
+
+def test_shift_to_render_recovers_a_relative_estimates_scale_and_shift() -> None:
+    # A sloped view, 12-28 mm, estimated up to scale 0.05 and shift 3 mm (render = 0.05 E + 3),
+    # with a 5 mm deeper removal over a fifth of the view that only the estimate sees.
+    from chisel.change import shift_to_render
+
+    rng = np.random.default_rng(0)
+    H, W = 64, 80
+    render = np.tile(np.linspace(12.0, 28.0, W), (H, 1)).astype(np.float32)
+    truth = render.copy()
+    truth[:, : W // 5] += 5.0
+    est = ((truth + rng.normal(0.0, 0.1, truth.shape) - 3.0) / 0.05).astype(np.float32)
+    shifted, shift, scale = shift_to_render(render, est, outlier_mm=1.0)
+    assert scale == pytest.approx(0.05, rel=0.01)
+    assert shift == pytest.approx(3.0 / 0.05, rel=0.02)
+    metric = scale * shifted
+    assert np.median(np.abs(metric - render)[:, W // 5 :]) < 0.15
+    assert np.median((metric - render)[:, : W // 5]) == pytest.approx(5.0, abs=0.2)
+    # A scale alone cannot fit it: the removal's edge is off by ~1 mm and the ramp bends.
+    s = solve_scale(render, est)[0]
+    assert np.median(np.abs(s * est - render)[:, W // 5 :]) > 0.5
+
+
+def test_shift_to_render_keeps_the_scale_of_a_view_of_one_depth() -> None:
+    # A wall seen head-on: scale and shift are collinear; the fit must not trade one for the
+    # other (a collapse of the scale), and the estimate still maps onto the render.
+    from chisel.change import MAX_SHIFT_SCALE_RATIO, shift_to_render
+
+    rng = np.random.default_rng(1)
+    render = np.full((64, 80), 15.0, np.float32)
+    est = ((render + rng.normal(0.0, 0.5, render.shape)) / 0.04).astype(np.float32)
+    s = solve_scale(render, est)[0]
+    shifted, _, scale = shift_to_render(render, est)
+    assert s / MAX_SHIFT_SCALE_RATIO <= scale <= s * MAX_SHIFT_SCALE_RATIO
+    assert abs(float(np.median(scale * shifted)) - 15.0) < 0.1
