@@ -139,45 +139,56 @@ unconstrained fit could trade the scale for the shift (the collapse of issue 19)
 
 
 def shift_to_render(
-    render_mm: np.ndarray, estimate: np.ndarray, outlier_mm: float = 1.0, iterations: int = 5
+    render_mm: np.ndarray, estimate: np.ndarray, outlier_mm: float = 1.0, iterations: int = 4
 ) -> tuple[np.ndarray, float, float]:
     """A relative estimate shifted so that a scale alone maps it to the render.
 
     Monocular networks give depth up to scale *and* shift (Ranftl et al., MiDaS); fitting
     ``a * estimate + b ~= render_mm`` on unchanged pixels (least squares inside a robust band
     of max(outlier_mm, 2.5 sigma), removed tissue lying outside it) and returning
-    ``estimate + b / a`` lets the scale machinery (:func:`solve_scale`, the scale-solving
-    ICP) work unchanged. Falls back to the estimate as it is (shift 0) when the fit is
-    degenerate: its scale outside ``MAX_SHIFT_SCALE_RATIO`` of the scale alone, or too few
-    pixels. Returns (shifted estimate (H, W) float32 with NaN where it is not positive,
-    the shift in the estimate's units, the scale that maps it to the render).
+    ``estimate + b / a`` lets the scale machinery work unchanged. Falls back to the estimate
+    as it is (shift 0) when the fit is degenerate: its scale outside
+    ``MAX_SHIFT_SCALE_RATIO`` of the scale alone (:func:`solve_scale`'s rule, on the same
+    pixels), or too few pixels. Returns (shifted estimate (H, W) float32 with NaN where it
+    is not positive, the shift in the estimate's units, the scale that maps it to the
+    render).
     """
-    s, _ = solve_scale(render_mm, estimate, outlier_mm)
-    r = np.asarray(render_mm, dtype=np.float64)
-    e = np.asarray(estimate, dtype=np.float64)
-    valid = np.isfinite(r) & np.isfinite(e) & (e > 0) & (r > 0)
-    n_valid = int(valid.sum())
-    if n_valid > 2 * MAX_SCALE_PIXELS:
-        stride = int(np.ceil(np.sqrt(n_valid / MAX_SCALE_PIXELS)))
-        sub = np.zeros_like(valid)
-        sub[::stride, ::stride] = True
-        valid &= sub
-    rv, ev = r[valid], e[valid]
-    A = np.stack([ev, np.ones_like(ev)], axis=1)
+    r = np.asarray(render_mm, dtype=np.float32)
+    e = np.asarray(estimate, dtype=np.float32)
+    # A regular pixel stride (as solve_scale): ~10^4 pixels fit two numbers as well as 10^5.
+    stride = max(1, int(np.ceil(np.sqrt(r.size / MAX_SCALE_PIXELS))))
+    rs, es = r[::stride, ::stride], e[::stride, ::stride]
+    valid = np.isfinite(rs) & np.isfinite(es) & (es > 0) & (rs > 0)
+    if int(valid.sum()) < MIN_SCALE_PIXELS:
+        raise EmptyResultError(
+            f"only {int(valid.sum())} pixels are valid in both the render and the estimate "
+            f"(need {MIN_SCALE_PIXELS}): cannot fit a scale and shift"
+        )
+    rv, ev = rs[valid].astype(np.float64), es[valid].astype(np.float64)
+    s, _ = solve_scale(rv[None, :], ev[None, :], outlier_mm)
+    unchanged = np.asarray(estimate, dtype=np.float32), 0.0, s
     resid = s * ev - rv
     keep = np.abs(resid) <= max(outlier_mm, 3.0 * 1.4826 * float(np.median(np.abs(resid))))
     a, b = s, 0.0
     for _ in range(iterations):
-        if int(keep.sum()) < MIN_SCALE_PIXELS:
-            return np.asarray(estimate, dtype=np.float32), 0.0, s
-        a, b = np.linalg.lstsq(A[keep], rv[keep], rcond=None)[0]
+        n = int(keep.sum())
+        if n < MIN_SCALE_PIXELS:
+            return unchanged
+        x, y = ev[keep], rv[keep]
+        mx, my = float(x.mean()), float(y.mean())
+        var = float(((x - mx) ** 2).sum())
+        if var <= 0.0:
+            return unchanged
+        a = float(((x - mx) * (y - my)).sum()) / var
+        b = my - a * mx
         resid = a * ev + b - rv
-        band = max(outlier_mm, 2.5 * 1.4826 * float(np.median(np.abs(resid[keep]))))
-        keep = np.abs(resid) <= band
+        keep = np.abs(resid) <= max(
+            outlier_mm, 2.5 * 1.4826 * float(np.median(np.abs(resid[keep])))
+        )
     if not (s / MAX_SHIFT_SCALE_RATIO <= a <= s * MAX_SHIFT_SCALE_RATIO):
-        return np.asarray(estimate, dtype=np.float32), 0.0, s
+        return unchanged
     shift = float(b / a)
-    out = (e + shift).astype(np.float32)
+    out = e + np.float32(shift)
     out[~(out > 0)] = np.nan
     return out, shift, float(a)
 
