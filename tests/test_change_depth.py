@@ -319,3 +319,41 @@ def test_shipped_checkpoint_on_a_wall_with_a_window() -> None:
         if window:
             assert np.median(depth[win] - prior[win]) > 3.0
             assert p[win].mean() > p[~win].mean() + 0.3
+
+
+def test_synthetic_removal_puts_a_lamella_in_front_in_the_prior_only() -> None:
+    import torch
+
+    from chisel.core.errors import InvalidInputError
+    from chisel.depth.change_train import PriorSet
+    from chisel.depth.prior_data import SYNTHETIC_REMOVAL_MM, add_synthetic_removal
+
+    n, H, W = 6, 40, 48
+    prior = torch.full((n, H, W), 20.0)
+    prior[:, :, :4] = float("nan")  # outside the field stop
+    pairs = PriorSet(
+        rgb=torch.zeros((n, H, W, 3), dtype=torch.uint8),
+        prior_mm=prior,
+        target_mm=prior.clone(),
+        changed=torch.zeros((n, H, W), dtype=torch.bool),
+        sources=[f"s#{i}" for i in range(n)],
+    )
+    before = pairs.prior_mm.clone()
+    out = add_synthetic_removal(pairs, 1.0, seed=3)
+    assert torch.equal(pairs.prior_mm.nan_to_num(), before.nan_to_num())  # input untouched
+    assert torch.equal(out.target_mm.nan_to_num(), pairs.target_mm.nan_to_num())
+    for i in range(n):
+        ch = out.changed[i].numpy()
+        p = out.prior_mm[i].numpy()
+        assert ch.any() and not ch[:, :4].any()  # a removal, only where the prior is valid
+        lo, hi = SYNTHETIC_REMOVAL_MM
+        gap = 20.0 - p[ch]
+        assert np.all(gap >= lo - 1e-5) and np.all(gap <= hi + 1e-5)
+        assert np.ptp(gap) < 1e-5  # one lamella, parallel to the surface
+        np.testing.assert_array_equal(p[~ch & np.isfinite(p)], 20.0)
+    again = add_synthetic_removal(pairs, 1.0, seed=3)
+    assert torch.equal(again.prior_mm.nan_to_num(), out.prior_mm.nan_to_num())
+    off = add_synthetic_removal(pairs, 0.0, seed=3)
+    assert torch.equal(off.prior_mm.nan_to_num(), before.nan_to_num()) and not off.changed.any()
+    with pytest.raises(InvalidInputError, match="synthetic-removal"):
+        add_synthetic_removal(pairs, 1.5, seed=0)

@@ -811,3 +811,46 @@ def test_model_and_true_removal_on_the_model_grid() -> None:
     # No update: nothing removed, Dice 0, HD95 undefined.
     s0 = removal_scores(model_removal(m0, m0), truth, 0.5)
     assert s0.dice == 0.0 and s0.hd95_mm is None
+
+
+def test_removal_scores_each_method_against_its_own_preop_grid(tmp_path, monkeypatch) -> None:
+    # The sweep-only build's grid differs from the CT build's: each method's removal is
+    # scored on the grid of the model its steps started from (default experiment, seed 4).
+    import types
+
+    import chisel.io.ct
+    from chisel.eval.step import _removals
+    from chisel.model import TsdfModel
+
+    pre = np.ones((20, 20, 20), np.uint8)
+    now = pre.copy()
+    now[8:12, 8:12, 8:12] = 0
+    labels = {"pre.nii": pre, "now.nii": now}
+    monkeypatch.setattr(
+        chisel.io.ct,
+        "read_ct_volume",
+        lambda p, kind: types.SimpleNamespace(
+            data=labels[Path(p).name], T_world_from_voxel=np.eye(4)
+        ),
+    )
+    paths = {}
+    for name, lo, hi in (("ct", 0.0, 19.0), ("sweep", 1.0, 17.0)):
+        m0 = TsdfModel.empty(np.full(3, lo), np.full(3, hi), 0.5, 2.0)
+        m0.tsdf[:] = -1.0
+        m0.weight[:] = 1.0
+        m1 = m0.copy()
+        ijk = np.stack(np.meshgrid(*[np.arange(s) for s in m0.shape], indexing="ij"), -1)
+        xyz = ijk * 0.5 + lo
+        m1.tsdf[np.all((xyz >= 7.5) & (xyz < 11.5), axis=-1)] = 1.0
+        m0.save(tmp_path / f"{name}_0.npz")
+        m1.save(tmp_path / f"{name}_1.npz")
+        paths[name] = (tmp_path / f"{name}_0.npz", tmp_path / f"{name}_1.npz")
+    ct_paths = (tmp_path / "pre.nii", tmp_path / "now.nii")
+    got = _removals(
+        {k: v[1] for k, v in paths.items()}, {k: v[0] for k, v in paths.items()}, ct_paths
+    )
+    assert got["ct"].dice == 1.0 and got["sweep"].dice == 1.0
+    assert got["sweep"].truth_mm3 == pytest.approx(got["ct"].truth_mm3)
+    # One preop model for both: the sweep's model is not on its grid.
+    with pytest.raises(InvalidInputError, match="not on the preoperative model's grid"):
+        _removals({k: v[1] for k, v in paths.items()}, paths["ct"][0], ct_paths)

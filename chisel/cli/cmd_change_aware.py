@@ -26,6 +26,7 @@ from chisel.depth.change_source import export_change_aware
 from chisel.depth.change_train import ChangeTrainConfig, train_change_aware
 from chisel.depth.data import held_out_groups
 from chisel.depth.prior_data import (
+    add_synthetic_removal,
     build_prior_set,
     check_change_training_seeds,
     preop_prior_set,
@@ -63,6 +64,7 @@ FINETUNE_OPTS = [
     "lr",
     "seed",
     "frame_step",
+    "synthetic_removal",
     "threads",
     "device",
 ]
@@ -133,7 +135,12 @@ def finetune(args: argparse.Namespace) -> int:
             cat("rgb"), cat("prior_mm"), cat("target_mm"), cat("changed"),
             sum((p.sources for p, _ in parts), []),
         )  # fmt: skip
-    cfg = ChangeTrainConfig.finetune_defaults(steps=args.steps, **trainer_options(args))
+    pairs = add_synthetic_removal(pairs, args.synthetic_removal, args.seed)
+    overrides = trainer_options(args)
+    if args.synthetic_removal > 0:
+        # With removals in the pairs the change head has something true to learn again.
+        overrides.setdefault("bce_weight", ChangeTrainConfig.bce_weight)
+    cfg = ChangeTrainConfig.finetune_defaults(steps=args.steps, **overrides)
     result = train_change_aware(pairs, cfg, init=net, progress=True)
     info = finetune_info(
         canonical_command(args, FINETUNE_OPTS),

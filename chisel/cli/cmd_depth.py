@@ -403,6 +403,14 @@ def _add_finetune(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="change-aware only: the CT surface mesh (PLY/STL/OBJ, mm) rendered as the prior",
     )
+    f.add_argument(
+        "--synthetic-removal",
+        type=finite_float,
+        default=1.0,
+        help="change-aware only: fraction of the preop frames whose prior gets a synthetic "
+        "removal (a lamella 1.5-5 mm in front of the surface), so that fine-tuning on a sweep "
+        "without change does not teach the network to copy its prior (default 1.0; 0 = off)",
+    )
     f.set_defaults(func=_cmd_finetune)
 
 

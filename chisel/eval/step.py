@@ -258,10 +258,13 @@ def _eval_poses(seq: SequenceFolder) -> tuple[np.ndarray, str]:
 
 def _removals(
     model_paths: Mapping[str, str | Path],
-    preop_model_path: str | Path | None,
+    preop_model_path: str | Path | Mapping[str, str | Path] | None,
     ct_label_paths: tuple[str | Path, str | Path] | None,
 ) -> dict[str, RemovalScores]:
-    """Removed-tissue scores per method from files (see :mod:`chisel.eval.volume`)."""
+    """Removed-tissue scores per method from files (see :mod:`chisel.eval.volume`).
+
+    preop_model_path : the preoperative model every method started from, or one per method
+    (the sweep-only build has its own grid)."""
     from chisel.io.ct import read_ct_volume
     from chisel.model import TsdfModel
 
@@ -273,10 +276,20 @@ def _removals(
     now_ct = read_ct_volume(ct_label_paths[1], "label")
     if not np.allclose(pre_ct.T_world_from_voxel, now_ct.T_world_from_voxel):
         raise InvalidInputError(ct_label_paths[1], "not on the preop label CT's grid")
-    preop = TsdfModel.load(preop_model_path)
-    truth = true_removal(pre_ct.data, now_ct.data, pre_ct.T_world_from_voxel, preop)
+    starts = (
+        {name: preop_model_path[name] for name in model_paths}
+        if isinstance(preop_model_path, Mapping)
+        else dict.fromkeys(model_paths, preop_model_path)
+    )
+    cache: dict[str, tuple[TsdfModel, np.ndarray]] = {}
     out = {}
     for name, path in model_paths.items():
+        key = str(starts[name])
+        if key not in cache:
+            preop = TsdfModel.load(starts[name])
+            truth = true_removal(pre_ct.data, now_ct.data, pre_ct.T_world_from_voxel, preop)
+            cache[key] = (preop, truth)
+        preop, truth = cache[key]
         removed = model_removal(preop, TsdfModel.load(path))
         out[name] = removal_scores(removed, truth, preop.voxel_size_mm)
     return out
@@ -293,7 +306,7 @@ def evaluate_step(
     change_sequence_path: str | Path | None = None,
     prev_gt_mesh_path: str | Path | None = None,
     removal_model_paths: Mapping[str, str | Path] | None = None,
-    preop_model_path: str | Path | None = None,
+    preop_model_path: str | Path | Mapping[str, str | Path] | None = None,
     ct_label_paths: tuple[str | Path, str | Path] | None = None,
 ) -> dict[str, Any]:
     """Evaluate one step from files; returns the step-metrics dict (see ``STEP_METRICS_SCHEMA``).
@@ -306,7 +319,7 @@ def evaluate_step(
     step's update sequence ``change_sequence_path``; scored against the true change between
     ``prev_gt_mesh_path`` (step t-1) and ``gt_mesh_path`` at that sequence's poses.
     removal_model_paths : name -> the method's model file (.npz) at this step; with
-    ``preop_model_path`` and ``ct_label_paths`` (preop label CT, this step's label CT) the
+    ``preop_model_path`` (one file, or name -> the method's own preoperative model) and ``ct_label_paths`` (preop label CT, this step's label CT) the
     removed-tissue Dice and HD95 are scored (:mod:`chisel.eval.volume`).
     """
     box = roi_box_mm if isinstance(roi_box_mm, RoiBox) else RoiBox.from_values(roi_box_mm)

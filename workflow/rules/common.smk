@@ -160,6 +160,12 @@ def method_mesh(wc, method):
     return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{method}/step_{wc.step}/mesh.ply"
 
 
+def method_preop_model(wc, method):
+    # The model a method's steps started from: the sweep-only build has its own grid.
+    build = "model_sweep" if method == "updated_sweep" else "model"
+    return f"{RESULTS}/seed_{wc.seed}/preop/{build}.npz"
+
+
 def eval_methods(wc):
     if int(wc.step) == 0:
         return ["updated"]  # the paper's "preop" row: the preoperative model, before any update

@@ -4,7 +4,7 @@ rule evaluate_step:
         index=rules.render.output.index,
         meshes=lambda wc: [method_mesh(wc, m) for m in eval_methods(wc)],
         models=lambda wc: [method_mesh(wc, m).replace("mesh.ply", "model.npz") for m in eval_methods(wc)],
-        preop_model=f"{RESULTS}/seed_{{seed}}/preop/model.npz",
+        preop_models=lambda wc: [method_preop_model(wc, m) for m in eval_methods(wc)],
         masks=lambda wc: [
             f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{m}/step_{wc.step}/change_masks.npz"
             for m in mask_methods(wc)

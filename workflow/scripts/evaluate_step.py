@@ -31,7 +31,7 @@ result = evaluate_step(
     if masks
     else None,
     removal_model_paths=dict(zip(sm.params.methods, sm.input.models, strict=True)),
-    preop_model_path=sm.input.preop_model,
+    preop_model_path=dict(zip(sm.params.methods, sm.input.preop_models, strict=True)),
     ct_label_paths=(
         named_path(sm.input.manifest, steps[0]["ct_label"], "steps[].ct_label"),
         named_path(sm.input.manifest, steps[step]["ct_label"], "steps[].ct_label"),
