@@ -2,7 +2,8 @@
 # paper's monocular network ("updated", which keeps its row). Active when "change_aware"
 # is listed in config "methods". Per seed: the shipped change-aware checkpoint is
 # fine-tuned on the preop sequence (prior and target: the CT surface rendered at the
-# tracked poses; the sweep shows no change), then every step runs the updater with
+# tracked poses, synthetic removals put into the priors; docs/depth.md), then every step
+# runs the updater with
 # --depth-source change-aware:CKPT (the model's own render M_t is the network's prior;
 # registration on, as for "updated"). Its paths use the literal method name, so the
 # generic `update` rule (methods of METHOD_SPECS) never matches them. Its input functions
