@@ -43,13 +43,15 @@ if point == "integrate":  # the 2nd frame's fusion of the step
     U.integrate = hooked
 elif point.startswith("sigint:"):  # Ctrl-C right after the move of one output
     import signal
+    # As in a terminal: a shell without job control starts background commands with
+    # SIGINT ignored, and Python then installs no handler (the CLI rightly ignores it).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     real_replace, name = os.replace, point.split(":", 1)[1]
     def hooked_replace(src, dst):
         real_replace(src, dst)
         if str(dst).endswith(name):
             marker.write_text(point)
-            signal.raise_signal(signal.SIGINT)  # to this thread: a kill() to the process may land
-            # in a busy worker thread and be handled only after the moves (a flaky test)
+            signal.raise_signal(signal.SIGINT)  # to this thread, not any of the process's
     os.replace = hooked_replace
 else:  # the final rename of the model file: its bytes are in the temporary file
     real_replace = os.replace
