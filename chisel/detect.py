@@ -185,13 +185,16 @@ def detect(inp: FrameInput, ctx: Context) -> Detection:
         m_raw, scale, reg = register_frame(T, inp.estimate, R, inp.scale0, ctx)
     except EmptyResultError as exc:
         return Detection(index=inp.frame.index, used=False, reason=str(exc))
+    shift_mm = 0.0
     if ctx.solve_for_scale and cfg.relative_depth == "scale_shift":
         # After registration, so that the shift cannot absorb a pose error: fitted to the
         # render, a shift absorbs the pose error and biases the registration.
-        shifted, shift, a = shift_to_render(R, m_raw, cfg.change.threshold_mm)
+        try:
+            shifted, shift, a = shift_to_render(R, m_raw, cfg.change.threshold_mm)
+        except EmptyResultError:  # too little of M' left after re-projection: scale only
+            shift = 0.0
         if shift != 0.0:
             m_raw, shift_mm = (a * shifted).astype(np.float32), a * shift
-    shift_mm = 0.0
     correction = None
     if reg is not None and reg.ok and "rejected" not in reg.extra:
         correction = invert_rigid(T) @ reg.T_model_from_est @ T
