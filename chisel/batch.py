@@ -193,8 +193,9 @@ def update_step(
         dets = confirm_changes(dets, camera, cfg.change)
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)
+    votes = np.zeros(new.shape, dtype=np.uint8)
     reports = [
-        fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps)
+        fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps, votes=votes)
         for f, d in zip(frames, dets, strict=True)
     ]
     return finish_step(new, reports, plan.sequence_registration, step_cfg)

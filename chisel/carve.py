@@ -141,11 +141,13 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_m
 
 @numba.njit(parallel=True, cache=True)
 def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
-                 status, z0, z1, half_voxel_mm):  # fmt: skip
+                 status, z0, z1, half_voxel_mm, votes, need_votes):  # fmt: skip
     # Voxel-centric, like the fusion kernel: a voxel is set free when its centre projects
     # (nearest pixel, lens distortion honoured) to a pixel whose ray deleted a layer and
     # its depth lies in that layer. A ray-centric walk would free every voxel a changed
     # ray merely grazes, eroding the rim of an opening by up to a voxel per view.
+    # need_votes > 1 (a noisy frame): the frame votes, and the voxel goes at its
+    # need_votes-th vote of the step.
     H, W = status.shape
     ny, nz = shape[1], shape[2]
     k1_, k2_, p1_, p2_, k3_ = dist[0], dist[1], dist[2], dist[3], dist[4]
@@ -172,6 +174,11 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                         break
                     if za - half_voxel_mm <= zc < zb:
                         idx = (i * ny + j) * nz + k
+                        if need_votes > 1 and tsdf[idx] < 1.0:
+                            if votes[idx] < 255:
+                                votes[idx] += 1
+                            if votes[idx] < need_votes:
+                                break
                         if tsdf[idx] < 1.0:
                             tsdf[idx] = 1.0
                             weight[idx] = 1.0
@@ -215,6 +222,8 @@ def carve_first_layer(
     reset: np.ndarray | None = None,
     max_layers: int = 4,
     precise: bool = True,
+    votes: np.ndarray | None = None,
+    noisy_votes: int = 1,
 ) -> tuple[np.ndarray, int]:
     """Deletion-first carving of one frame's change, **in place**; returns (status, voxels).
 
@@ -233,7 +242,10 @@ def carve_first_layer(
     estimate lies past the middle of the cavity between the layer's front and the next
     surface the model holds, and a pixel whose estimate ends inside tissue the model holds
     is left alone (:data:`CARVE_NONE`) instead of fused as a partial cut; only where the
-    model holds nothing behind is the new depth fused.
+    model holds nothing behind is the new depth fused. With ``votes`` (the step's per-voxel
+    counts, updated in place) and ``noisy_votes`` > 1 such a frame only votes: a voxel is
+    set free at its ``noisy_votes``-th vote of the step (one vote per frame), so that one
+    frame's wrong estimate deletes nothing alone.
 
     m_t, m_new : (H, W) float32 z-depth of the model (at step start) and the estimate M',
         mm, NaN invalid; mask : (H, W) bool change mask; tol_mm : the frame's change
@@ -263,6 +275,11 @@ def carve_first_layer(
     if reset is not None and (reset.shape != model.shape or reset.dtype != np.uint8):
         raise InvalidInputError("reset", f"expected {model.shape} uint8, got {reset.shape}")
     r = _flat(reset, "reset") if reset is not None else np.zeros(1, np.uint8)
+    need_votes, vt = 1, np.zeros(1, np.uint8)
+    if not precise and votes is not None and noisy_votes > 1:
+        if votes.shape != model.shape or votes.dtype != np.uint8:
+            raise InvalidInputError("votes", f"expected {model.shape} uint8, got {votes.shape}")
+        need_votes, vt = int(noisy_votes), _flat(votes, "votes")
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
     box = _deleted_voxel_box(model, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
     if box is None:
@@ -272,6 +289,6 @@ def carve_first_layer(
         np.ascontiguousarray(T_cam_from_voxel[:3, :3]), np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
         camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
-        status, z0, z1, 0.5 * float(model.voxel_size_mm),
+        status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes,
     )  # fmt: skip
     return status, int(n)

@@ -54,6 +54,12 @@ class UpdateConfig:
     and never fuse a new surface inside tissue the model holds (a partial cut needs depth
     precise to the threshold): docs/updater.md. Exact depth keeps the 1 mm threshold and
     is carved as before. False = every frame carved as precise."""
+    noisy_votes: int = 3
+    """Deletion carving of a noisy frame (see ``noisy_carve``): a voxel is set free once
+    this many frames of the step have deleted it (one vote per frame; exact depth deletes
+    at once). On the default experiment one frame's estimate, wrong through a whole region
+    (a network's depth inside a dark cavity), deleted hundreds of voxels of tissue that
+    other views did not confirm (docs/updater.md). 1 = every noisy frame deletes alone."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
     points only while the hand-eye estimate has no prior (lost track at the start);
@@ -82,5 +88,7 @@ class UpdateConfig:
             )
         if self.carve not in ("deletion", "paper"):
             raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")
+        if not 1 <= self.noisy_votes <= 255:
+            raise InvalidInputError("noisy_votes", f"must be in [1, 255], got {self.noisy_votes}")
         if self.hand_eye_frames < 1:
             raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")

@@ -70,12 +70,15 @@ def fuse(
     reset: np.ndarray,
     rgb: np.ndarray | None = None,
     keep_mask: bool = False,
+    votes: np.ndarray | None = None,
 ) -> FrameReport:
     """Carve a detected frame's change mask into ``model`` (in place): the frame's report.
 
     reset : (X, Y, Z) uint8, the step's voxels already reset (updated in place); rgb :
-    (H, W, 3) uint8 colour of the frame (used when the model has colour). A frame not
-    used (its scale could not be solved) only gets its report.
+    (H, W, 3) uint8 colour of the frame (used when the model has colour); votes : (X, Y, Z)
+    uint8, the step's deletion votes of noisy frames (``cfg.noisy_votes``; updated in
+    place; None = a noisy frame deletes alone). A frame not used (its scale could not be
+    solved) only gets its report.
     """
     if not det.used:
         return FrameReport(
@@ -92,7 +95,8 @@ def fuse(
         # depth only where the model holds nothing behind.
         status, voxels_deleted = carve_first_layer(
             model, camera, det.T_world_from_cam, det.m_t, det.m_prime, mask, det.threshold_mm,
-            reset=reset, precise=is_precise(det.threshold_mm, cfg),
+            reset=reset, precise=is_precise(det.threshold_mm, cfg), votes=votes,
+            noisy_votes=cfg.noisy_votes,
         )  # fmt: skip
         deleted_px = int((status == CARVE_DELETED).sum())
         fuse_mask = mask & (status == CARVE_FUSE)
@@ -171,6 +175,7 @@ class ChiselUpdater:
         self.cfg = cfg
         self._renderer: ModelRenderer | None = None
         self._reset: np.ndarray | None = None
+        self._votes: np.ndarray | None = None
         self._frames: list[FrameReport] = []
         self._hand_eye = HandEye()
 
@@ -183,6 +188,7 @@ class ChiselUpdater:
         """
         self._renderer = ModelRenderer(self.model)
         self._reset = np.zeros(self.model.shape, dtype=np.uint8)
+        self._votes = np.zeros(self.model.shape, dtype=np.uint8)
         self._frames = []
         if hand_eye is not None:
             self._hand_eye.F = check_rigid(hand_eye, "hand_eye")
@@ -205,7 +211,7 @@ class ChiselUpdater:
             raise RuntimeError("end_step() without begin_step()")
         self.model, report = finish_step(self.model, self._frames, None, self.cfg)
         self._renderer = None
-        self._reset = None
+        self._reset = self._votes = None
         return report
 
     def estimate(self, frame: Frame, render_mm: np.ndarray | None = None) -> np.ndarray:
@@ -238,7 +244,10 @@ class ChiselUpdater:
         )  # fmt: skip
         det = detect(inp, ctx)
         self._hand_eye.learn(det)
-        rep = fuse(self.model, self.camera, det, self.cfg, self._reset_grid(), frame.rgb, keep_maps)
+        rep = fuse(
+            self.model, self.camera, det, self.cfg, self._reset_grid(), frame.rgb, keep_maps,
+            votes=self._votes,
+        )  # fmt: skip
         self._frames.append(rep)
         return rep
 

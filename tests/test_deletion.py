@@ -15,6 +15,7 @@ import trimesh
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
+from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, look_at, transform_points
 from chisel.core.raycast import MeshRaycaster
 from chisel.ct_model import ct_from_mesh
@@ -196,7 +197,9 @@ def _walls_model(walls: list[tuple[float, float]]) -> TsdfModel:
     )
 
 
-def _carve_at(model: TsdfModel, estimate_z_mm: float, precise: bool) -> tuple[np.ndarray, int]:
+def _carve_at(
+    model: TsdfModel, estimate_z_mm: float, precise: bool, **kw: object
+) -> tuple[np.ndarray, int]:
     """Carve a frame looking down +z from the origin whose estimate is the plane z = const,
     with every pixel in view of the first wall marked changed."""
     from chisel.carve import carve_first_layer
@@ -206,7 +209,7 @@ def _carve_at(model: TsdfModel, estimate_z_mm: float, precise: bool) -> tuple[np
     est = np.full(CAM.shape, estimate_z_mm, np.float32)
     mask = np.zeros(CAM.shape, bool)
     mask[30:50, 38:58] = True  # a central patch: its rays stay inside the walls' 20 x 20 mm
-    return carve_first_layer(model, CAM, T, m_t, est, mask, tol_mm=1.0, precise=precise)
+    return carve_first_layer(model, CAM, T, m_t, est, mask, tol_mm=1.0, precise=precise, **kw)
 
 
 def _freed(before: TsdfModel, after_tsdf: np.ndarray, z_lo: float, z_hi: float) -> int:
@@ -248,3 +251,36 @@ def test_a_noisy_estimate_deletes_one_layer_and_only_past_the_middle_of_the_cavi
         assert np.all(status[30:50, 38:58] == CARVE_DELETED)
         assert _freed(model, m.tsdf, 9.8, 11.0) > 0
         assert (_freed(model, m.tsdf, 13.8, 15.0) > 0) == precise
+
+
+def test_noisy_frames_delete_a_voxel_only_at_its_third_vote_and_exact_depth_at_once() -> None:
+    # A 0.8 mm lamella at z = 10, air behind it to z = 20; every frame's estimate says z 18.
+    from chisel.carve import CARVE_DELETED
+
+    model = _walls_model([(10.0, 10.8)])
+    m = model.copy()
+    votes = np.zeros(m.shape, np.uint8)
+    for frame in range(1, 4):
+        status, n = _carve_at(m, 18.0, precise=False, votes=votes, noisy_votes=3)
+        assert np.all(status[30:50, 38:58] == CARVE_DELETED)  # the frame's own verdict
+        freed = _freed(model, m.tsdf, 9.8, 11.0)
+        if frame < 3:
+            assert n == 0 and freed == 0, (frame, n, freed)
+        else:  # the third vote frees exactly the voxels the first two voted for
+            assert n > 0 and freed > 0
+            assert n == int(((votes >= 1) & (model.tsdf < 0) & (m.tsdf > 0)).sum())
+    # Exact depth (precise) deletes at the first frame, votes or not.
+    m = model.copy()
+    votes = np.zeros(m.shape, np.uint8)
+    _carve_at(m, 18.0, precise=True, votes=votes, noisy_votes=3)
+    assert _freed(model, m.tsdf, 9.8, 11.0) > 0 and not votes.any()
+    # A wrong votes grid is refused, naming it.
+    with pytest.raises(InvalidInputError, match="votes"):
+        _carve_at(model.copy(), 18.0, precise=False, votes=np.zeros(3, np.uint8), noisy_votes=3)
+
+
+def test_noisy_votes_is_checked() -> None:
+    assert UpdateConfig().noisy_votes == 3
+    for bad in (0, 256):
+        with pytest.raises(InvalidInputError, match="noisy_votes"):
+            UpdateConfig(noisy_votes=bad)
