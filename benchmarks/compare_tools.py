@@ -1,0 +1,199 @@
+"""Issue 22: the update with tools in view against the tool-free run, per step and method.
+
+Reads two finished default-target runs of the workflow (``snakemake --cores 2`` and
+``snakemake --cores 2 --configfile config/tools.yaml``, same phantom seed) and prints:
+
+* the tool statistics of the tools run's intraoperative sequences (``render/step_NN``):
+  frames in a tool episode (``tools.json``), frames whose ``tool_mask/`` holds any pixel,
+  and the mean fraction of the field stop (``camera_mask.png``) the tool covers in those;
+* per step (1..bites) and per method row present in both runs: mean correspondence error
+  (the paper's metric, ``metrics.json`` ``mean_mm``) of both runs and tools / tool-free;
+  the goal is met for a row when every step's ratio is <= 1.1 (and it is reported whether
+  it also stays >= 0.9);
+* frames used by each update and the mean changed-pixel fraction of its frames, tool and
+  tool-free frames apart (``update.json``).
+
+    .venv/bin/python benchmarks/compare_tools.py [--free results/default] [--tools results/tools]
+        [--seed 0] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+LOW, HIGH = 0.9, 1.1
+
+
+def _png(path: Path) -> np.ndarray:
+    return np.asarray(Image.open(path)) > 127
+
+
+def tool_stats(seq: Path) -> dict:
+    """Tool episode frames, frames with tool pixels, mean tool fraction of the field stop."""
+    if not (seq / "tools.json").exists():  # a tool-free sequence (e.g. a repeat run)
+        n = len(list((seq / "rgb").glob("*.png")))
+        return {
+            "frames": n,
+            "episode_frames": 0,
+            "tool_frames": [],
+            "tool_frame_fraction": 0.0,
+            "mean_tool_px_fraction": 0.0,
+            "max_tool_px_fraction": 0.0,
+        }
+    meta = json.loads((seq / "tools.json").read_text())
+    episode = [f["index"] for f in meta["frames"] if f.get("tool") is not None]
+    cam = seq / "camera_mask.png"
+    files = sorted((seq / "tool_mask").glob("*.png"))
+    stop = _png(cam) if cam.exists() else np.ones(_png(files[0]).shape, bool)
+    fractions = {}
+    for f in files:
+        m = _png(f) & stop
+        if m.any():
+            fractions[int(f.stem)] = float(m.sum() / stop.sum())
+    return {
+        "frames": len(files),
+        "episode_frames": len(episode),
+        "tool_frames": sorted(fractions),
+        "tool_frame_fraction": len(fractions) / len(files),
+        "mean_tool_px_fraction": float(np.mean(list(fractions.values()))) if fractions else 0.0,
+        "max_tool_px_fraction": float(max(fractions.values())) if fractions else 0.0,
+    }
+
+
+def _means(metrics: dict) -> dict[tuple[int, str], float]:
+    return {
+        (s["step"], m): v["mean_mm"]
+        for s in metrics["steps"]
+        if s["step"] > 0
+        for m, v in s["methods"].items()
+        if v.get("mean_mm") is not None
+    }
+
+
+def update_stats(report: Path, tool_frames: set[int]) -> dict:
+    rep = json.loads(report.read_text())
+    frames = rep["frames"]
+
+    def mean_changed(sel: list[dict]) -> float | None:
+        vals = [
+            f["changed_fraction"]
+            for f in sel
+            if f.get("used") and f.get("changed_fraction") is not None
+        ]
+        return float(np.mean(vals)) if vals else None
+
+    return {
+        "used": len(rep["frames_used"]),
+        "of": rep["num_frames"],
+        "used_tool_frames": sum(1 for f in frames if f.get("used") and f["index"] in tool_frames),
+        "changed_tool": mean_changed([f for f in frames if f["index"] in tool_frames]),
+        "changed_free": mean_changed([f for f in frames if f["index"] not in tool_frames]),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--free", type=Path, default=Path("results/default"))
+    p.add_argument("--tools", type=Path, default=Path("results/tools"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", type=Path, help="also write everything printed as JSON")
+    a = p.parse_args(argv)
+    sub = f"seed_{a.seed}"
+    free = json.loads((a.free / sub / "base" / "metrics.json").read_text())
+    tools = json.loads((a.tools / sub / "base" / "metrics.json").read_text())
+    mf, mt = _means(free), _means(tools)
+    steps = sorted({s for s, _ in mt})
+    methods = [
+        m
+        for m in dict.fromkeys(m for _, m in mf)
+        if all((s, m) in mt and (s, m) in mf for s in steps)
+    ]
+
+    out: dict = {"tools": {}, "rows": {}, "updates": {}}
+    print("# tool statistics (tools run, intraoperative sequences)")
+    print(
+        "step | frames | in a tool episode | tool pixels in view | mean / max tool px fraction of the field stop"
+    )
+    all_tool_frames: dict[int, set[int]] = {}
+    for s in steps:
+        st = tool_stats(a.tools / sub / "render" / f"step_{s:02d}")
+        all_tool_frames[s] = set(st["tool_frames"])
+        out["tools"][s] = st
+        print(
+            f"{s} | {st['frames']} | {st['episode_frames']} | {len(st['tool_frames'])} "
+            f"({st['tool_frame_fraction']:.1%}) | {st['mean_tool_px_fraction']:.3f} / "
+            f"{st['max_tool_px_fraction']:.3f}"
+        )
+    n = sum(v["frames"] for v in out["tools"].values())
+    k = sum(len(v["tool_frames"]) for v in out["tools"].values())
+    weighted = [
+        out["tools"][s]["mean_tool_px_fraction"] * len(out["tools"][s]["tool_frames"])
+        for s in steps
+    ]
+    px = sum(weighted) / k if k else 0.0
+    out["tools"]["all"] = {
+        "frames": n,
+        "tool_frames": k,
+        "tool_frame_fraction": k / n,
+        "mean_tool_px_fraction": float(px),
+    }
+    print(f"all | {n} | - | {k} ({k / n:.1%}) | {px:.3f} (frame-weighted)")
+
+    print("\n# mean correspondence error, mm: tool-free, tools, tools / tool-free")
+    print("method | " + " | ".join(f"step {s}" for s in steps) + " | verdict")
+    for m in methods:
+        cells, ratios = [], []
+        for s in steps:
+            r = mt[(s, m)] / mf[(s, m)]
+            ratios.append(r)
+            cells.append(f"{mf[(s, m)]:.3f}, {mt[(s, m)]:.3f}, {r:.2f}x")
+        worse = [s for s, r in zip(steps, ratios, strict=True) if r > HIGH]
+        better = [s for s, r in zip(steps, ratios, strict=True) if r < LOW]
+        verdict = "PASS" if not worse else f"FAIL (steps {worse})"
+        if better:
+            verdict += f"; better than 0.9x at steps {better}"
+        out["rows"][m] = {
+            "free_mm": [mf[(s, m)] for s in steps],
+            "tools_mm": [mt[(s, m)] for s in steps],
+            "ratio": ratios,
+            "pass": not worse,
+        }
+        print(f"{m} | " + " | ".join(cells) + f" | {verdict}")
+
+    print(
+        "\n# updates: frames used (tools run: of them with a tool), mean changed-pixel fraction tool / tool-free frames"
+    )
+    for m in methods:
+        if m == "no_update":
+            continue
+        for s in steps:
+            rf = a.free / sub / "base" / m / f"step_{s:02d}" / "update.json"
+            rt = a.tools / sub / "base" / m / f"step_{s:02d}" / "update.json"
+            if not (rf.exists() and rt.exists()):
+                continue
+            uf = update_stats(rf, all_tool_frames[s])
+            ut = update_stats(rt, all_tool_frames[s])
+            out["updates"][f"{m}/{s}"] = {"free": uf, "tools": ut}
+
+            def fmt(x: float | None) -> str:
+                return "-" if x is None else f"{x:.3f}"
+
+            print(
+                f"{m} step {s}: used free {uf['used']}/{uf['of']}, tools {ut['used']}/{ut['of']} "
+                f"({ut['used_tool_frames']} with tool); changed px tool-frames free/tools "
+                f"{fmt(uf['changed_tool'])}/{fmt(ut['changed_tool'])}, other frames "
+                f"{fmt(uf['changed_free'])}/{fmt(ut['changed_free'])}"
+            )
+    if a.json:
+        a.json.write_text(json.dumps(out, indent=1, default=list) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""benchmarks/compare_tools.py (issue 22) on two hand-written runs: tool statistics, ratios, verdict."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location(
+        "compare_tools", ROOT / "benchmarks/compare_tools.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _run(root: Path, means: dict[str, list[float]], tools: bool) -> None:
+    base = root / "seed_0" / "base"
+    base.mkdir(parents=True)
+    steps = [
+        {"step": s, "methods": {m: {"mean_mm": v[s - 1]} for m, v in means.items()}} for s in (1, 2)
+    ]
+    (base / "metrics.json").write_text(json.dumps({"steps": steps}))
+    for s in (1, 2):
+        seq = root / "seed_0" / "render" / f"step_{s:02d}"
+        (seq / "rgb").mkdir(parents=True)
+        stop = np.zeros((8, 10), np.uint8)
+        stop[:, :5] = 255  # a 40-pixel field stop
+        Image.fromarray(stop).save(seq / "camera_mask.png")
+        for i in range(4):
+            Image.fromarray(np.zeros((8, 10, 3), np.uint8)).save(seq / "rgb" / f"{i:06d}.png")
+        if not tools:
+            continue
+        (seq / "tool_mask").mkdir()
+        frames = []
+        for i in range(4):
+            m = np.zeros((8, 10), np.uint8)
+            if i == 1:
+                m[0:2, 0:2] = 255  # 4 px inside the stop: 10 %
+            if i == 2:
+                m[:, 8:] = 255  # in a tool episode, but outside the field stop
+            Image.fromarray(m).save(seq / "tool_mask" / f"{i:06d}.png")
+            frames.append({"index": i, "tool": "forceps" if i in (1, 2) else None})
+        (seq / "tools.json").write_text(json.dumps({"frames": frames}))
+
+
+def test_compare_tools_ratios_verdict_and_tool_statistics(tmp_path: Path, capsys) -> None:
+    _run(
+        tmp_path / "free",
+        {"no_update": [1.0, 2.0], "updated": [0.5, 1.0], "only_free": [1, 1]},
+        False,
+    )
+    _run(tmp_path / "tools", {"no_update": [1.0, 2.0], "updated": [0.5, 1.2]}, True)
+    out_json = tmp_path / "out.json"
+    rc = _load().main(
+        [
+            "--free",
+            str(tmp_path / "free"),
+            "--tools",
+            str(tmp_path / "tools"),
+            "--json",
+            str(out_json),
+        ]
+    )
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "updated | 0.500, 0.500, 1.00x | 1.000, 1.200, 1.20x | FAIL (steps [2])" in text
+    assert "no_update | 1.000, 1.000, 1.00x | 2.000, 2.000, 1.00x | PASS" in text
+    got = json.loads(out_json.read_text())
+    assert set(got["rows"]) == {"no_update", "updated"}  # rows of both runs only
+    st = got["tools"]["1"]
+    assert st["episode_frames"] == 2 and st["tool_frames"] == [1]
+    assert st["tool_frame_fraction"] == 0.25
+    assert abs(st["mean_tool_px_fraction"] - 0.1) < 1e-12
+    assert got["tools"]["all"]["tool_frames"] == 2
