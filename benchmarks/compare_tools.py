@@ -24,14 +24,16 @@ import json
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
-from PIL import Image
+
+from chisel.io.images import decode_image
 
 LOW, HIGH = 0.9, 1.1
 
 
 def _png(path: Path) -> np.ndarray:
-    return np.asarray(Image.open(path)) > 127
+    return decode_image(path, cv2.IMREAD_GRAYSCALE, "mask") > 127
 
 
 def tool_stats(seq: Path) -> dict:

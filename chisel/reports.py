@@ -28,7 +28,9 @@ class FrameReport:
     threshold_mm: float = float("nan")
     """The change threshold used for this frame, mm (see ``ChangeConfig.noise_k``)."""
     deleted_px: int = 0
-    """Changed pixels whose first layer was deleted up to a surface the model holds."""
+    """Changed pixels whose first layer was deleted up to a surface the model holds (for a
+    noisy frame with ``UpdateConfig.noisy_votes`` > 1: voted for deletion; the voxels go at
+    their last vote, counted in ``voxels_deleted`` of that frame)."""
     uncarved_px: int = 0
     """Changed pixels that deletion-first carving left alone (``chisel.carve.CARVE_NONE``);
     they are not in the carved ``mask`` nor in ``changed_fraction``."""

@@ -319,8 +319,9 @@ def evaluate_step(
     step's update sequence ``change_sequence_path``; scored against the true change between
     ``prev_gt_mesh_path`` (step t-1) and ``gt_mesh_path`` at that sequence's poses.
     removal_model_paths : name -> the method's model file (.npz) at this step; with
-    ``preop_model_path`` (one file, or name -> the method's own preoperative model) and ``ct_label_paths`` (preop label CT, this step's label CT) the
-    removed-tissue Dice and HD95 are scored (:mod:`chisel.eval.volume`).
+    ``preop_model_path`` (one file, or name -> the method's own preoperative model) and
+    ``ct_label_paths`` (preop label CT, this step's label CT) the removed-tissue Dice and
+    HD95 are scored (:mod:`chisel.eval.volume`).
     """
     box = roi_box_mm if isinstance(roi_box_mm, RoiBox) else RoiBox.from_values(roi_box_mm)
     if not method_mesh_paths:

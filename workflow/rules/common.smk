@@ -118,8 +118,7 @@ def update_sequence(wc):
 def previous_model(wc):
     step = int(wc.step)
     if step == 1:
-        build = "model_sweep" if wc.method == "updated_sweep" else "model"
-        return f"{RESULTS}/seed_{wc.seed}/preop/{build}.npz"
+        return method_preop_model(wc, wc.method)
     return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{wc.method}/step_{step - 1:02d}/model.npz"
 
 
