@@ -43,7 +43,7 @@ def _voxel_at(A, z, rx, ry, nx, ny, nz):
 
 
 @numba.njit(parallel=True, cache=True)
-def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_mm, trunc_mm, tol_mm,
+def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_mm, tol_mm,
                 max_layers, precise, z0, z1):  # fmt: skip
     # Read-only pass: per changed pixel, its status and the depth intervals [z0, z1) of the
     # layers to delete (up to ``max_layers``). No voxel is written here, so the result does
@@ -57,13 +57,14 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, dz_unit, voxel_m
         for u in range(W):
             if not mask[v, u]:
                 continue
-            zt = m_t[v, u]
-            ze = m_new[v, u]
-            if not (zt > 0.0 and ze > 0.0):
+            zt = np.float64(m_t[v, u])
+            ze = np.float64(m_new[v, u])
+            if not (zt > 0.0 and ze > 0.0 and np.isfinite(zt) and np.isfinite(ze)):
                 continue
             rx = rays[v, u, 0]
             ry = rays[v, u, 1]
-            dz = dz_unit[v, u]
+            # Half a voxel of ray length per step, in z units.
+            dz = 0.5 * voxel_mm / np.sqrt(rx * rx + ry * ry + rays[v, u, 2] * rays[v, u, 2])
             # Phase A: the first tissue voxel near the old surface M_t.
             z = zt - voxel_mm
             found = False
@@ -190,25 +191,34 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
     return counts.sum()
 
 
-def _deleted_voxel_box(
-    model: TsdfModel,
-    rays: np.ndarray,
-    T_voxel_from_cam: np.ndarray,
-    status: np.ndarray,
-    z0: np.ndarray,
-    z1: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """Index box [lo, hi) of the voxels that the deleted layers can reach, or None."""
-    sel = status == CARVE_DELETED
-    if not sel.any():
-        return None
-    r = rays[sel]
-    ends = [r * z0[sel][:, :1], r * z1[sel].max(axis=1, keepdims=True)]
-    P = np.concatenate(ends) @ T_voxel_from_cam[:3, :3].T + T_voxel_from_cam[:3, 3]
-    shape = np.array(model.shape)
-    lo = np.clip(np.floor(P.min(axis=0)).astype(np.int64) - 1, 0, shape)
-    hi = np.clip(np.ceil(P.max(axis=0)).astype(np.int64) + 2, 0, shape)
-    return (lo, hi) if np.all(hi > lo) else None
+@numba.njit(cache=True)
+def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1):
+    # Index box [lo, hi) of the voxels that the deleted layers can reach: the hull of the
+    # layers' end points (first layer's front, deepest back) in voxel coordinates.
+    H, W = status.shape
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    R = T_voxel_from_cam
+    for v in range(H):
+        for u in range(W):
+            if status[v, u] != CARVE_DELETED:
+                continue
+            zb = z1[v, u, 0]
+            for layer in range(1, z1.shape[2]):
+                zb = max(zb, z1[v, u, layer])
+            for z in (z0[v, u, 0], zb):
+                x, y, w = rays[v, u, 0] * z, rays[v, u, 1] * z, rays[v, u, 2] * z
+                for a in range(3):
+                    p = R[a, 0] * x + R[a, 1] * y + R[a, 2] * w + R[a, 3]
+                    lo[a] = min(lo[a], p)
+                    hi[a] = max(hi[a], p)
+    box = np.zeros((2, 3), dtype=np.int64)
+    for a in range(3):
+        if lo[a] > hi[a]:
+            return box  # nothing deleted: an empty box
+        box[0, a] = min(max(int(np.floor(lo[a])) - 1, 0), shape[a])
+        box[1, a] = min(max(int(np.ceil(hi[a])) + 2, 0), shape[a])
+    return box
 
 
 def carve_first_layer(
@@ -257,9 +267,7 @@ def carve_first_layer(
         camera.check_image(a, name)
     A = np.ascontiguousarray((np.linalg.inv(model.T_world_from_voxel) @ T)[:3])
     rays = np.ascontiguousarray(camera.rays_cam(), dtype=np.float64)
-    # Half a voxel of ray length per step, in z units.
-    dz_unit = 0.5 * model.voxel_size_mm / np.linalg.norm(rays, axis=-1)
-    clean = lambda d: np.nan_to_num(np.asarray(d, np.float64), nan=0.0, posinf=0.0)  # noqa: E731
+    depth = lambda d: np.asarray(d, np.float32)  # noqa: E731  (non-finite = invalid, in the kernel)
     shape = np.array(model.shape, dtype=np.int64)
     H, W = camera.shape
     z0 = np.zeros((H, W, max_layers))
@@ -267,8 +275,8 @@ def carve_first_layer(
     tsdf = _flat(model.tsdf, "model.tsdf")
     weight = _flat(model.weight, "model.weight")
     status = _carve_plan(
-        tsdf, weight, shape, A, rays, clean(m_t), clean(m_new), np.asarray(mask, bool),
-        dz_unit, float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
+        tsdf, weight, shape, A, rays, depth(m_t), depth(m_new), np.asarray(mask, bool),
+        float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
         int(max_layers), bool(precise), z0, z1,
     )  # fmt: skip
     use_reset = reset is not None
@@ -281,8 +289,8 @@ def carve_first_layer(
             raise InvalidInputError("votes", f"expected {model.shape} uint8, got {votes.shape}")
         need_votes, vt = int(noisy_votes), _flat(votes, "votes")
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
-    box = _deleted_voxel_box(model, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
-    if box is None:
+    box = _deleted_voxel_box(shape, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
+    if not np.all(box[1] > box[0]):
         return status, 0
     n = _carve_apply(
         tsdf, weight, r, use_reset, shape, box[0], box[1],
