@@ -58,6 +58,9 @@ from chisel.model import TsdfModel
 from chisel.update_config import UpdateConfig
 from chisel.updater import ChiselUpdater
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_render import cpu_simd  # noqa: E402
+
 
 def _pose_error(shift_mm: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
     from scipy.spatial.transform import Rotation
@@ -181,6 +184,7 @@ def main() -> int:
 
     print(f"scene: {scene['name']}")
     print(f"cpu_threads: {numba.get_num_threads()}")
+    print(f"cpu_simd: {cpu_simd()}")
     print(f"image: {args.width}x{args.height}")
 
     # --- preoperative fusion, ours vs Open3D on the same depth maps

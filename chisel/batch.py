@@ -185,6 +185,7 @@ def update_step(
             plan.solve_for_scale,
             hand_eye.current(),
             hand_eye.prior,
+            hand_eye.may_retry(step_cfg.frame_ransac),
         )
         det = detect(inp, ctx)
         hand_eye.learn(det)

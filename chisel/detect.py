@@ -93,16 +93,25 @@ class HandEye:
 
     Fixed (a batch step's F from the whole sequence) or, streaming, the robust mean of
     the corrections of the last ``HISTORY`` registered frames; once 3 frames agree, each
-    frame's ICP is held near it by a weak prior.
+    frame's ICP is held near it by a weak prior. Until then a frame whose ICP fails may
+    be retried with RANSAC (``UpdateConfig.frame_ransac``); after a retry that fails, the
+    next 1, 2, 4, ... (at most ``RETRY_WAIT_MAX``) frames are not retried.
     """
 
     HISTORY = 15
     """Frames whose corrections form the streaming estimate of F."""
+    RETRY_WAIT_MAX = 16
+    """Longest wait, in frames, between RANSAC retries that keep failing. A retry costs
+    ~0.1 s at 320x256; on bench_update's sweep-only model 2 of 32 retries succeeded, one per
+    frame until the prior formed, which halved the streaming rate. Neighbouring frames see
+    nearly the same surface: a retry that failed on one fails on the next."""
 
     def __init__(self) -> None:
         self.F = np.eye(4)
         self.fixed = False
         self.history: list[np.ndarray] = []
+        self._failed_retries = 0
+        self._wait = 0
 
     def current(self) -> np.ndarray:
         if self.fixed or not self.history:
@@ -113,9 +122,21 @@ class HandEye:
     def prior(self) -> bool:
         return self.fixed or len(self.history) >= 3
 
+    def may_retry(self, frame_ransac: str) -> bool:
+        """Whether the next frame's failed ICP may be retried with RANSAC + ICP."""
+        return frame_ransac == "always" or (not self.prior and self._wait == 0)
+
     def learn(self, det: Detection) -> None:
         if det.correction is not None:
             self.history.append(det.correction)
+        retry = (det.registration or {}).get("global_retry")
+        if retry == "ok":
+            self._failed_retries, self._wait = 0, 0
+        elif retry == "failed":
+            self._failed_retries += 1
+            self._wait = min(2 ** (self._failed_retries - 1), self.RETRY_WAIT_MAX)
+        elif self._wait > 0:
+            self._wait -= 1
 
 
 def scale_free(cfg: UpdateConfig, source: object) -> bool:
@@ -172,6 +193,9 @@ class Context:
     """(4, 4) camera-side correction F to start registration from."""
     prior: bool
     """Hold the frame's ICP near ``hand_eye``."""
+    retry_global: bool = False
+    """Retry a failed ICP with RANSAC + ICP on the frame's own points
+    (:meth:`HandEye.may_retry`)."""
 
 
 def detect(inp: FrameInput, ctx: Context) -> Detection:
@@ -242,11 +266,13 @@ def register_frame(
     res = check_result(
         sim.T_model_from_est, sim.fitness, sim.rmse_mm, "icp", src.mean(axis=0), rcfg, sim.scale
     )
-    if not res.ok and (cfg.frame_ransac == "always" or not prior):
+    retried = ""
+    if not res.ok and ctx.retry_global:
         # Lost track (first frame, a jump): global RANSAC on this frame alone, then ICP.
         lo, hi = src.min(axis=0) - 5.0, src.max(axis=0) + 5.0
         tv, tn = renderer.surface_points(lo, hi)
         if len(tv) >= 10:
+            retried = "failed"
             glob = register_global(src, tv, tn, rcfg, init=C)
             if glob.ok:
                 sim = icp_similarity(
@@ -256,8 +282,11 @@ def register_frame(
                     sim.T_model_from_est, sim.fitness, sim.rmse_mm, "ransac+icp",
                     src.mean(axis=0), rcfg, sim.scale,
                 )  # fmt: skip
+                retried = "ok" if res.ok else "failed"
     s = s0 * sim.scale
     res.extra.update({"scale_refinement": sim.scale, "icp_iterations": sim.iterations})
+    if retried:
+        res.extra["global_retry"] = retried
     if not res.ok:
         # A noisy estimate never fails the frame: it keeps its tracked pose and the
         # scale anchored to the render (as the registration ablation), and says so.

@@ -62,8 +62,10 @@ class UpdateConfig:
     other views did not confirm (docs/updater.md). 1 = every noisy frame deletes alone."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
-    points only while the hand-eye estimate has no prior (lost track at the start);
-    afterwards the frame keeps its tracked pose, scale only. "always" = every time
+    points only while the hand-eye estimate has no prior (lost track at the start), and
+    after a retry that failed not for the next 1, 2, 4, ... (at most 16) frames
+    (:class:`chisel.detect.HandEye`); otherwise the frame keeps its tracked pose, scale
+    only. "always" = every time
     (~0.1 s per retry at 320x256). On a large removal most of a close view has changed:
     ICP fails on many frames, and the retries set the streaming rate and landed on worse
     registrations (benchmarks/bench_update.py, docs/updater.md)."""

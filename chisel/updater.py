@@ -159,7 +159,7 @@ class ChiselUpdater:
     modelled as a constant camera-side (hand-eye) correction F, ``T_corrected =
     T_tracked @ F``, plus per-frame jitter (:class:`chisel.detect.HandEye`, kept across
     steps). A frame whose ICP fails is retried with RANSAC + ICP on its own points while
-    F has no prior (``UpdateConfig.frame_ransac``).
+    F has no prior, less often while the retries keep failing (``UpdateConfig.frame_ransac``).
     """
 
     def __init__(
@@ -240,7 +240,7 @@ class ChiselUpdater:
         inp = FrameInput(frame, T, self.estimate(frame, R), render_mm=R)
         ctx = Context(
             self.camera, renderer, self.cfg, scale_free(self.cfg, self.depth_source),
-            self.hand_eye, self._hand_eye.prior,
+            self.hand_eye, self._hand_eye.prior, self._hand_eye.may_retry(self.cfg.frame_ransac),
         )  # fmt: skip
         det = detect(inp, ctx)
         self._hand_eye.learn(det)

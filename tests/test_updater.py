@@ -359,17 +359,21 @@ def test_frame_ransac_until_prior_skips_the_retry_once_the_hand_eye_is_known(
 
     monkeypatch.setattr(detect_mod, "register_global", counting)
     cam, model = scene["cam"], scene["model"]
-    fr = frames(scene["bitten"], cam, poses(4, seed=2))
+    fr = frames(scene["bitten"], cam, poses(8, seed=2))
     # No ICP passes a fitness of 0.99: every frame fails and may be retried globally.
+    # Without a prior, each failed retry doubles the wait before the next one: frames
+    # 0, 2 (after waiting 1) and 5 (after waiting 2); the next would be frame 10.
     strict = RegistrationConfig(min_fitness=0.99)
-    for mode, fixed, expected in (("always", True, 4), ("until_prior", True, 0),
-                                  ("until_prior", False, 4)):  # fmt: skip
+    for mode, fixed, retried in (("always", True, list(range(8))), ("until_prior", True, []),
+                                 ("until_prior", False, [0, 2, 5])):  # fmt: skip
         calls[0] = 0
         cfg = UpdateConfig(registration=strict, frame_ransac=mode)
         upd = ChiselUpdater(model, cam, GroundTruthDepth(), cfg)
         upd.begin_step(hand_eye=np.eye(4), fixed=fixed)
         reps = [upd.process(f) for f in fr]
-        assert calls[0] == expected, (mode, fixed, calls[0])
+        assert calls[0] == len(retried), (mode, fixed, calls[0])
+        assert [r.index for r in reps if "global_retry" in r.registration] == retried
+        assert all(r.registration["global_retry"] == "failed" for r in reps if r.index in retried)
         # Either way no frame is lost: it keeps its tracked pose and says so.
         assert all(r.used and "fallback" in r.registration for r in reps)
     with pytest.raises(InvalidInputError, match="frame_ransac"):
