@@ -33,7 +33,10 @@ class ToolsConfig:
     enabled: bool = False
     """Put instruments in view (``sim render --tools``)."""
     fraction: float = 0.3
-    """Fraction of each intraoperative sequence's frames that lie in a tool episode."""
+    """Fraction of each intraoperative sequence's frames that lie in a tool episode. About
+    two thirds of an episode's frames show the tool (it enters from behind the lens and
+    withdraws there): 0.3 gave tool pixels in 20.5-21.0 % of the frames, 0.45 in 30.0 %
+    (phantom seeds 0 and 1, five steps of 80 frames each)."""
     kinds: tuple[ToolKind, ...] = ("forceps", "suction", "microdebrider")
     """Instruments drawn from, one per episode."""
     seed: int = 0

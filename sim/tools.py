@@ -316,20 +316,21 @@ def plan_tool_track(
     crosses the lens plane ``2 mm + tool radius + 0.3-1.2 mm`` from the optical centre
     towards ``phi`` and runs nearly parallel to the optical axis (converging by up to
     1.5 mm at the tip), so the shaft enters the view from its edge; the tip sits at a depth
-    from ``cfg.tip_depth_mm`` (capped 1.5 mm in front of the tissue seen there in the
-    episode's middle frame). Over the first quarter of the episode the tool advances
+    from ``cfg.tip_depth_mm`` (capped 1.5 mm in front of the tissue seen there in every
+    frame of the episode). Over the first quarter of the episode the tool advances
     ``travel_mm`` along its axis, over the last it withdraws. Every frame is checked
-    (:func:`tool_clearance_mm`); a failing episode is redrawn. Same inputs and seed, same
-    track.
+    (:func:`tool_clearance_mm`); a failing episode is redrawn, and after ``cfg.max_tries``
+    split in two (while both halves keep ``episode_frames``' minimum). Same inputs and
+    seed, same track.
     """
     P = np.asarray(T_world_from_cam, dtype=np.float64).reshape(-1, 4, 4)
     n = len(P)
     rng = np.random.default_rng([int(seed), int(cfg.seed), 43])
     kind = np.full(n, -1, dtype=int)
     poses = np.tile(np.eye(4), (n, 1, 1))
-    for start, end in _episodes(n, cfg, rng):
-        mid = (start + end) // 2
-        Tm = P[mid]
+    todo = _episodes(n, cfg, rng)
+    while todo:
+        start, end = todo.pop(0)
         frames = np.arange(start, end)
         s = (frames - start + 0.5) / (end - start)
         ramp = np.clip(np.minimum(s, 1.0 - s) / 0.25, 0.0, 1.0)  # 0 -> 1 -> 0
@@ -342,10 +343,11 @@ def plan_tool_track(
             s0 = SCOPE_RADIUS_MM + radius + float(rng.uniform(0.3, 1.2))
             z_tip = float(rng.uniform(*cfg.tip_depth_mm))
             tip = side * (s0 - float(rng.uniform(0.0, 1.5))) + np.array([0.0, 0.0, z_tip])
-            # Stay in front of the tissue seen through the tip (middle frame).
-            o = Tm[:3, 3]
-            d_world = Tm[:3, :3] @ (tip / np.linalg.norm(tip))
-            t_hit = float(tissue.first_hit_mm(o[None], (o + d_world)[None])[0])
+            # Stay in front of the tissue seen through the tip, in every frame of the
+            # episode (the scope moves towards tissue within one).
+            o = P[frames, :3, 3]
+            d_world = P[frames, :3, :3] @ (tip / np.linalg.norm(tip))
+            t_hit = float(np.min(tissue.first_hit_mm(o, o + d_world)))
             z_cap = t_hit * tip[2] / np.linalg.norm(tip) - 1.5
             if z_cap < 2.0:
                 continue
@@ -364,6 +366,12 @@ def plan_tool_track(
                 poses[frames] = ep
                 break
         else:
+            if end - start >= 2 * cfg.episode_frames[0]:
+                # The scope moves too far within a long episode for one rigid tool pose
+                # beside it (a narrow passage): two shorter episodes, drawn afresh.
+                half = start + (end - start) // 2
+                todo[:0] = [(start, half), (half, end)]
+                continue
             raise PathError(
                 "tools.max_tries",
                 f"no tool episode clear of tissue in {cfg.max_tries} tries (frames "

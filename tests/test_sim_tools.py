@@ -213,3 +213,50 @@ def test_render_folder_with_tools_masks_them_out(toy) -> None:
     assert n_tool >= 3
     # Preop and eval sequences stay tool-free.
     assert not (out / "preop/tool_mask").exists() and not (out / "eval/step_00/tool_mask").exists()
+
+
+def test_an_episode_that_cannot_be_placed_whole_is_split_in_two(toy, monkeypatch) -> None:
+    # A long episode fails when the scope moves too far within it for one rigid tool pose:
+    # modelled here by a clearance check that refuses every candidate over 5 frames.
+    _, _, _, cfg, tissue, poses, tools, _ = toy
+    tc = replace_in(cfg, **{"tools.episode_frames": [3, 10]}).tools
+    whole = plan_tool_track(tools, cfg.camera.camera(), poses, tissue, tc, seed=5)
+    import sim.tools as tools_mod
+
+    real = tools_mod.tool_clearance_mm
+    placed: list[tuple[int, int]] = []
+
+    def short_only(tools_, cand, P, tissue_):  # type: ignore[no-untyped-def]
+        n = len(cand.kind)
+        if n > 5:
+            return np.full(n, -1.0), np.full(n, 1.0)
+        d_t, d_s = real(tools_, cand, P, tissue_)
+        if d_t.min() >= tc.clearance_mm and d_s.min() >= 0.0:
+            start = int(np.flatnonzero(np.all(np.isclose(poses, P[0]), axis=(1, 2)))[0])
+            placed.append((start, start + n))
+        return d_t, d_s
+
+    monkeypatch.setattr(tools_mod, "tool_clearance_mm", short_only)
+    split = plan_tool_track(tools, cfg.camera.camera(), poses, tissue, tc, seed=5)
+    covered = set(np.flatnonzero(whole.kind >= 0))
+    # The planner's episode layout (its first draws): one episode at least is too long.
+    layout = tools_mod._episodes(len(poses), tc, np.random.default_rng([5, tc.seed, 43]))
+    assert covered == {f for a, b in layout for f in range(a, b)}
+    assert any(b - a > 5 for a, b in layout)
+    # The same frames carry a tool, now in pieces of at most 5 frames that tile them.
+    assert set(np.flatnonzero(split.kind >= 0)) == covered
+    assert all(b - a <= 5 for a, b in placed)
+    assert sorted(f for a, b in placed for f in range(a, b)) == sorted(covered)
+    # A piece that still cannot be placed (shorter than twice the minimum) is an error.
+    monkeypatch.setattr(
+        tools_mod, "tool_clearance_mm", lambda t, c, P, s: (-np.ones(len(c.kind)),) * 2
+    )
+    with pytest.raises(PathError, match="tools.max_tries"):
+        plan_tool_track(
+            tools,
+            cfg.camera.camera(),
+            poses,
+            tissue,
+            replace_in(cfg, **{"tools.episode_frames": [3, 10], "tools.max_tries": 2}).tools,
+            seed=5,
+        )

@@ -50,6 +50,21 @@ def test_bad_config_is_refused(tmp_path: Path) -> None:
     assert "bites" in r.stdout + r.stderr
 
 
+def test_render_sim_section_reaches_sim_render_which_checks_it(tmp_path: Path) -> None:
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(yaml.safe_dump({"render": {"sim": {"tools": {"fraction": 1.5}}}}))
+    configs = ["--configfile", str(ROOT / "config" / "smoke.yaml"), str(cfg)]
+    r = run(["--cores", "1", "results/smoke/sim_config.yaml", *configs], tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    written = yaml.safe_load((tmp_path / "results/smoke/sim_config.yaml").read_text())
+    assert written == {"tools": {"fraction": 1.5}}
+    r = run(["--cores", "2", "results/smoke/seed_0/render/render.json", *configs], tmp_path)
+    assert r.returncode != 0
+    log = (tmp_path / "results/smoke/logs/seed_0/render.log").read_text()
+    assert "tools.fraction" in log and "sim_config.yaml" in log, log[-2000:]
+    assert not (tmp_path / "results/smoke/seed_0/render").exists()
+
+
 NOISY_GT = """\
 import pathlib, sys
 import numpy as np

@@ -105,6 +105,8 @@ def network_checkpoint(wildcards):
 # update_config rule):
 # UpdateConfig's fields, checked by chisel, whose defaults are the dataclass's own.
 UPDATE_CONFIG = f"{RESULTS}/update_config.yaml"
+# The ``render.sim:`` section as the file that ``sim render --config`` reads (sim_config rule).
+SIM_CONFIG = f"{RESULTS}/sim_config.yaml"
 
 
 def update_sequence(wc):

@@ -1,6 +1,21 @@
+rule sim_config:
+    """The experiment's simulator configuration as one YAML file (sim render --config)."""
+    output:
+        SIM_CONFIG,
+    log:
+        f"{RESULTS}/logs/sim_config.log",
+    params:
+        mapping=RC.get("sim", {}),
+    conda:
+        ENV
+    script:
+        "../scripts/write_yaml.py"
+
+
 rule render:
     input:
         manifest=rules.phantom.output.manifest,
+        sim_config=SIM_CONFIG,
     output:
         index=f"{RESULTS}/seed_{{seed}}/render/render.json",
     log:
@@ -20,7 +35,7 @@ rule render:
         mem_mb=MEM_MB,
     shell:
         "python -m sim render --phantom $(dirname {input.manifest}) --out $(dirname {output.index}) "
-        "--seed {wildcards.seed} {params.opts} > {log} 2>&1"
+        "--seed {wildcards.seed} --config {input.sim_config} {params.opts} > {log} 2>&1"
 
 
 rule retrack:

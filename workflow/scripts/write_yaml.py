@@ -1,6 +1,6 @@
-"""Write a rule's ``params.mapping`` as a YAML file (the update parameters, for
-``chisel update --config``): the workflow's config section becomes the one file that
-the command line reads and checks."""
+"""Write a rule's ``params.mapping`` as a YAML file (the update parameters for
+``chisel update --config``, the simulator's for ``sim render --config``): the workflow's
+config section becomes the one file that the command line reads and checks."""
 
 from pathlib import Path
 
