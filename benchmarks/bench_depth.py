@@ -2,11 +2,20 @@
 
     python benchmarks/bench_depth.py [--checkpoint CK] [--data DATASET_OR_SEQS ...]
                                      [--seeds 0-3] [--frames 30] [--threads 2]
+                                     [--effects-config config/sim_eval_effects.yaml]
+                                     [--baseline CK]
 
 Accuracy: median-scaled abs-rel / RMSE (mm) / delta<1.25 of the checkpoint (default: the
 shipped one) on evaluation phantoms (seeds 0-99, never trained on). Without ``--data``
 it renders ``--seeds`` with ``python -m sim dataset`` into a temporary folder. The peer
 in the same run is a constant-depth predictor (what median scaling alone achieves).
+
+With ``--effects-config`` the same phantoms are rendered a second time with that simulator
+configuration and ``--tools`` (instruments, blood, smoke, blur, smears: issue 22) and the
+checkpoint is scored on those frames too (``abs_rel_effects``; tool pixels are outside
+the sequence masks, so not scored). ``--baseline`` scores a second checkpoint (e.g. the
+network trained without the effects) on the same frames: ``baseline_abs_rel`` and
+``baseline_abs_rel_effects``.
 
 Speed: frames/s of the depth source (uint8 RGB frame -> depth map, batch 1, 320x256,
 ``--threads`` torch threads), eager checkpoint and TorchScript export. Prints
@@ -46,9 +55,11 @@ class ConstantDepth:
         return np.ones(frame.rgb.shape[:2], np.float32)
 
 
-def render_eval_set(seeds: str, frames: int, out: Path) -> Path:
+def render_eval_set(seeds: str, frames: int, out: Path, config: Path | None = None) -> Path:
     cmd = [sys.executable, "-m", "sim", "dataset", "--seeds", seeds, "--out", str(out)]
     cmd += ["--bites", "1", "--frames", str(frames), "--preop-frames", str(frames), "--quiet"]
+    if config is not None:
+        cmd += ["--config", str(config), "--tools"]
     subprocess.run(cmd, check=True)
     return out
 
@@ -80,6 +91,15 @@ def main() -> None:
         help="torch threads for the headline figure (default 1: on this shared 2-core "
         "machine 2 threads stall on descheduled OpenMP workers; infer_fps_threads2 shows it)",
     )
+    ap.add_argument(
+        "--effects-config",
+        type=Path,
+        default=None,
+        help="sim config of a second evaluation set with effects (rendered with --tools)",
+    )
+    ap.add_argument(
+        "--baseline", default=None, help="a second checkpoint scored on the same frames"
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     ck = Path(args.checkpoint)
@@ -105,6 +125,24 @@ def main() -> None:
         print(f"rmse_mm: {m.rmse_mm:.3f}")
         print(f"delta_1_25: {m.delta_1_25:.4f}")
         print(f"abs_rel: {m.abs_rel:.4f}")
+        fx: list[Sequence] = []
+        if args.effects_config is not None:
+            if args.data:
+                ap.error("--effects-config renders --seeds; it does not go with --data")
+            fx_dir = render_eval_set(args.seeds, args.frames, Path(tmp) / "fx", args.effects_config)
+            fx = [Sequence(r.path) for r in find_sequences([fx_dir])]
+            print(f"effects_config: {args.effects_config}")
+            print(f"eval_frames_effects: {sum(len(s) for s in fx)}")
+            print(
+                f"abs_rel_effects_constant_depth_peer: {evaluate_source(ConstantDepth(), fx).abs_rel:.4f}"
+            )
+            print(f"abs_rel_effects: {evaluate_source(source, fx).abs_rel:.4f}")
+        if args.baseline is not None:
+            base = load_depth_source(Path(args.baseline))
+            print(f"baseline: {args.baseline}")
+            print(f"baseline_abs_rel: {evaluate_source(base, seqs).abs_rel:.4f}")
+            if fx:
+                print(f"baseline_abs_rel_effects: {evaluate_source(base, fx).abs_rel:.4f}")
 
         rng = np.random.default_rng(0)
         rgb = seqs[0].rgb(0) if seqs else rng.integers(0, 256, (256, 320, 3), dtype=np.uint8)

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from chisel.depth import DEFAULT_CHECKPOINT
+
 ROOT = Path(__file__).resolve().parents[1]
 LINE = re.compile(r"^([a-z][a-z0-9_]*): (\S.*)$")
 
@@ -99,9 +101,17 @@ def test_bench_phantoms_prints_phantom_s_last() -> None:
 
 @pytest.mark.slow
 def test_bench_depth_prints_accuracy_and_infer_fps_last() -> None:
-    pairs = run_bench("bench_depth.py", "--seeds", "0", "--frames", "2")
-    figures = check_contract(pairs, "infer_fps", ["abs_rel", "delta_1_25", "infer_fps_eager"])
+    fx = str(ROOT / "config" / "sim_eval_effects.yaml")
+    pairs = run_bench(
+        "bench_depth.py", "--seeds", "0", "--frames", "2", "--effects-config", fx,
+        "--baseline", str(DEFAULT_CHECKPOINT),
+    )  # fmt: skip
+    names = ["abs_rel", "delta_1_25", "infer_fps_eager", "abs_rel_effects", "baseline_abs_rel"]
+    figures = check_contract(pairs, "infer_fps", [*names, "baseline_abs_rel_effects"])
     assert 0 <= number(figures["delta_1_25"]) <= 1
+    # The baseline here is the same checkpoint: the same frames give the same figures.
+    assert figures["baseline_abs_rel"] == figures["abs_rel"]
+    assert figures["baseline_abs_rel_effects"] == figures["abs_rel_effects"]
 
 
 @pytest.mark.slow
