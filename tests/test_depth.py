@@ -17,6 +17,7 @@ from chisel.core.geometry import Camera, look_at
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth import (
     DEFAULT_CHECKPOINT,
+    EFFECTS_CHECKPOINT,
     AugmentConfig,
     CheckpointError,
     DepthNet,
@@ -606,12 +607,16 @@ def test_cli_train_finetune_export_evaluate(
 # --------------------------------------------------------------------------- shipped model
 
 
-@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no default checkpoint shipped")
-def test_default_checkpoint_loads_and_predicts(dataset: Path) -> None:
-    net, info = load_checkpoint(DEFAULT_CHECKPOINT)
+@pytest.mark.parametrize(
+    "shipped", [DEFAULT_CHECKPOINT, EFFECTS_CHECKPOINT], ids=["default", "effects"]
+)
+def test_shipped_checkpoints_load_and_predict(dataset: Path, shipped: Path) -> None:
+    net, info = load_checkpoint(shipped)
     assert info["kind"] == "train"
     assert min(info["train_phantom_seeds"]) >= 1000
-    src = load_depth_source(DEFAULT_CHECKPOINT)
+    if shipped == EFFECTS_CHECKPOINT:  # its record names the data that reproduces it
+        assert "config/sim_train_effects.yaml" in info["command"]
+    src = load_depth_source(shipped)
     frame = Sequence(dataset / "seq_1000").frame(0)
     depth = src(frame)
     assert np.isfinite(depth[frame.mask]).all() and (depth[frame.mask] > 0).all()

@@ -41,9 +41,13 @@ from chisel.depth.train import TrainConfig, TrainResult, evaluate_frames, train
 
 DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoints") / "default.pt"
 """The depth checkpoint shipped with the package (trained by its own workflow)."""
+EFFECTS_CHECKPOINT = Path(__file__).with_name("checkpoints") / "effects.pt"
+"""A second shipped checkpoint, trained on frames with intraoperative effects (tools,
+blood, smoke, blur, lens smears; ``config/sim_train_effects.yaml``, docs/depth.md)."""
 
 __all__ = [
     "DEFAULT_CHECKPOINT",
+    "EFFECTS_CHECKPOINT",
     "RESERVED_EVAL_SEEDS",
     "AugmentConfig",
     "CheckpointError",
