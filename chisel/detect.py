@@ -193,7 +193,7 @@ class Context:
     """(4, 4) camera-side correction F to start registration from."""
     prior: bool
     """Hold the frame's ICP near ``hand_eye``."""
-    retry_global: bool = False
+    retry_global: bool
     """Retry a failed ICP with RANSAC + ICP on the frame's own points
     (:meth:`HandEye.may_retry`)."""
 
