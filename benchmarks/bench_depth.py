@@ -101,6 +101,8 @@ def main() -> None:
         "--baseline", default=None, help="a second checkpoint scored on the same frames"
     )
     args = ap.parse_args()
+    if args.effects_config is not None and args.data:
+        ap.error("--effects-config renders --seeds; it does not go with --data")
     torch.set_num_threads(args.threads)
     ck = Path(args.checkpoint)
     print(f"checkpoint: {ck}")
@@ -127,8 +129,6 @@ def main() -> None:
         print(f"abs_rel: {m.abs_rel:.4f}")
         fx: list[Sequence] = []
         if args.effects_config is not None:
-            if args.data:
-                ap.error("--effects-config renders --seeds; it does not go with --data")
             fx_dir = render_eval_set(args.seeds, args.frames, Path(tmp) / "fx", args.effects_config)
             fx = [Sequence(r.path) for r in find_sequences([fx_dir])]
             print(f"effects_config: {args.effects_config}")
