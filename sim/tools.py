@@ -12,12 +12,14 @@ advances), the shaft running back along -z; jaws open in the tool's x-z plane.
   instrument, held beside the scope on an axis that enters the view from the image edge,
   advances into view, works and withdraws; every frame's tool keeps
   ``tools.clearance_mm`` from tissue (:class:`sim.collision.TissueDistance`) and from
-  the scope, else the episode is redrawn (:class:`~sim.errors.PathError` after
-  ``tools.max_tries``).
+  the scope, else the episode is redrawn, split and at last dropped
+  (:class:`~sim.errors.PathError` when fewer than half the frames asked for get a tool
+  within ``tools.max_tries``).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +32,8 @@ from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
 from sim.collision import TissueDistance
 from sim.config import ToolKind, ToolsConfig
 from sim.errors import MeshError, PathError, PathInTissueError
+
+log = logging.getLogger(__name__)
 
 TOOL_KINDS: tuple[ToolKind, ...] = ("forceps", "suction", "microdebrider")
 """The built-in instruments, in the order of their index in a :class:`ToolTrack`."""
@@ -279,6 +283,11 @@ def check_tool_track(
         )
 
 
+RELOCATE_TRIES = 4
+"""Per sequence, how many times an episode that fits nowhere in its frames (even split)
+is moved to other free frames before it is left out."""
+
+
 def _episodes(n: int, cfg: ToolsConfig, rng: np.random.Generator) -> list[tuple[int, int]]:
     """Disjoint [start, end) frame ranges covering about ``fraction`` of ``n`` frames."""
     want = int(round(cfg.fraction * n))
@@ -320,8 +329,12 @@ def plan_tool_track(
     frame of the episode). Over the first quarter of the episode the tool advances
     ``travel_mm`` along its axis, over the last it withdraws. Every frame is checked
     (:func:`tool_clearance_mm`); a failing episode is redrawn, and after ``cfg.max_tries``
-    split in two (while both halves keep ``episode_frames``' minimum). Same inputs and
-    seed, same track.
+    split in two (while both halves keep half of ``episode_frames``' minimum: a surgeon
+    withdraws a tool early when the scope turns into a narrow passage); a piece that still
+    fails is moved to other free frames (up to :data:`RELOCATE_TRIES` times per
+    sequence), then left without a tool (a warning names its frames), and :class:`PathError`
+    is raised when fewer than half of the frames asked for got one. Same inputs and seed,
+    same track.
     """
     P = np.asarray(T_world_from_cam, dtype=np.float64).reshape(-1, 4, 4)
     n = len(P)
@@ -329,6 +342,10 @@ def plan_tool_track(
     kind = np.full(n, -1, dtype=int)
     poses = np.tile(np.eye(4), (n, 1, 1))
     todo = _episodes(n, cfg, rng)
+    want = sum(b - a for a, b in todo)
+    dropped: list[tuple[int, int]] = []
+    relocations = 0
+    min_piece = max(1, (cfg.episode_frames[0] + 1) // 2)
     while todo:
         start, end = todo.pop(0)
         frames = np.arange(start, end)
@@ -366,16 +383,44 @@ def plan_tool_track(
                 poses[frames] = ep
                 break
         else:
-            if end - start >= 2 * cfg.episode_frames[0]:
+            if end - start >= 2 * min_piece:
                 # The scope moves too far within a long episode for one rigid tool pose
                 # beside it (a narrow passage): two shorter episodes, drawn afresh.
                 half = start + (end - start) // 2
                 todo[:0] = [(start, half), (half, end)]
                 continue
+            if relocations < RELOCATE_TRIES:
+                # A narrow passage: the surgeon brings the tool in at another moment, in
+                # frames that hold no tool and no planned episode.
+                relocations += 1
+                free = np.ones(n, dtype=bool)
+                free[kind >= 0] = False
+                for a, b in [*todo, (start, end)]:
+                    free[a:b] = False
+                length = end - start
+                ok = np.convolve(free.astype(int), np.ones(length, dtype=int), "valid") == length
+                if ok.any():
+                    new_start = int(rng.choice(np.flatnonzero(ok)))
+                    todo.append((new_start, new_start + length))
+                    continue
+            dropped.append((start, end))
+    if dropped:
+        ranges = ", ".join(f"{a}-{b - 1}" for a, b in dropped)
+        placed = int((kind >= 0).sum())
+        if placed < 0.5 * want:
             raise PathError(
                 "tools.max_tries",
-                f"no tool episode clear of tissue in {cfg.max_tries} tries (frames "
-                f"{start}-{end - 1}; tissue mesh {tissue.source}): lower tools.tip_depth_mm, "
-                "tools.clearance_mm, tools.shaft_length_mm or tools.fraction",
+                f"no tool episode clear of tissue in {cfg.max_tries} tries (frames {ranges}; "
+                f"tools in {placed} of the {want} frames asked for; tissue mesh "
+                f"{tissue.source}): lower tools.tip_depth_mm, tools.clearance_mm, "
+                "tools.shaft_length_mm or tools.fraction",
             )
+        log.warning(
+            "tools: no episode clear of tissue in frames %s of %s (a narrow passage); "
+            "tools in %d of the %d frames asked for",
+            ranges,
+            tissue.source,
+            placed,
+            want,
+        )
     return ToolTrack(kind, poses)

@@ -4,6 +4,7 @@ depths against Open3D's ray caster, masks through the sequence folder."""
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import cv2
@@ -215,7 +216,7 @@ def test_render_folder_with_tools_masks_them_out(toy) -> None:
     assert not (out / "preop/tool_mask").exists() and not (out / "eval/step_00/tool_mask").exists()
 
 
-def test_an_episode_that_cannot_be_placed_whole_is_split_in_two(toy, monkeypatch) -> None:
+def test_an_episode_that_cannot_be_placed_whole_is_split_in_two(toy, monkeypatch, caplog) -> None:
     # A long episode fails when the scope moves too far within it for one rigid tool pose:
     # modelled here by a clearance check that refuses every candidate over 5 frames.
     _, _, _, cfg, tissue, poses, tools, _ = toy
@@ -247,7 +248,41 @@ def test_an_episode_that_cannot_be_placed_whole_is_split_in_two(toy, monkeypatch
     assert set(np.flatnonzero(split.kind >= 0)) == covered
     assert all(b - a <= 5 for a, b in placed)
     assert sorted(f for a, b in placed for f in range(a, b)) == sorted(covered)
-    # A piece that still cannot be placed (shorter than twice the minimum) is an error.
+    # A piece that still cannot be placed (shorter than twice the minimum: a narrow
+    # passage) is left without a tool and named in a warning; the rest keep theirs.
+    # First split further, then moved to other free frames (one short episode in 16 frames).
+    sparse = replace_in(cfg, **{"tools.episode_frames": [3, 10], "tools.fraction": 0.25}).tools
+    monkeypatch.setattr(tools_mod, "tool_clearance_mm", real)
+    alone = set(
+        np.flatnonzero(
+            plan_tool_track(tools, cfg.camera.camera(), poses, tissue, sparse, seed=5).kind >= 0
+        )
+    )
+    blocked = sorted(alone)[0]
+
+    def narrow(tools_, cand, P, tissue_):  # type: ignore[no-untyped-def]
+        if np.all(np.isclose(P, poses[blocked]), axis=(1, 2)).any():
+            return np.full(len(cand.kind), -1.0), np.full(len(cand.kind), 1.0)
+        return real(tools_, cand, P, tissue_)
+
+    monkeypatch.setattr(tools_mod, "tool_clearance_mm", narrow)
+    with caplog.at_level(logging.WARNING, logger="sim.tools"):
+        moved = plan_tool_track(tools, cfg.camera.camera(), poses, tissue, sparse, seed=5)
+    got = set(np.flatnonzero(moved.kind >= 0))
+    # Split, and the half with the narrow frame moved: as many tool frames, none there.
+    assert len(alone) == 4 and len(got) == 4 and blocked not in got and got != alone
+    assert not caplog.text
+    # With no moves allowed, the piece holding the narrow frame is left out (a warning
+    # names it) and the rest keep their tools.
+    blocked = sorted(covered)[0]
+    monkeypatch.setattr(tools_mod, "RELOCATE_TRIES", 0)
+    with caplog.at_level(logging.WARNING, logger="sim.tools"):
+        gap = plan_tool_track(tools, cfg.camera.camera(), poses, tissue, tc, seed=5)
+    got = set(np.flatnonzero(gap.kind >= 0))
+    assert blocked not in got and got < covered
+    assert 1 <= len(covered - got) < tc.episode_frames[0] + 1  # one piece of one episode
+    assert f"frames {blocked}-" in caplog.text
+    # Fewer than half of the frames asked for get a tool: an error naming the key.
     monkeypatch.setattr(
         tools_mod, "tool_clearance_mm", lambda t, c, P, s: (-np.ones(len(c.kind)),) * 2
     )
