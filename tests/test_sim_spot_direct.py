@@ -12,7 +12,7 @@ import trimesh
 from chisel.core.geometry import Camera, look_at, make_transform
 from chisel.core.mitsuba_variant import load_mitsuba
 from chisel.core.raycast import MeshRaycaster
-from sim.appearance import texture_volume
+from sim.appearance import TextureVolume, texture_volume
 from sim.collision import TissueDistance
 from sim.config import ImagingConfig, SimConfig, replace_in
 from sim.imaging import sensor_image
@@ -207,6 +207,29 @@ def test_packed_texture_matches_mitsuba_gridvolume() -> None:
     ours = np.asarray(PackedTexture(mi, tex).eval(p))
     np.testing.assert_allclose(ours, ref, atol=2e-5)
     assert ref.std() > 0.01
+
+
+def test_packed_texels_are_the_10_bit_levels_and_off_grid_values_are_refused() -> None:
+    box = np.array([[0.0, 0.0, 0.0], [4.0, 3.0, 2.0]])
+    cfg = replace_in(SimConfig(), **{"appearance.texture_voxel_mm": 0.5})
+    tex = texture_volume(box, cfg.appearance, 1)
+    # Independent of the float32 packing: the levels in float64, shifted by hand.
+    k = np.round(tex.rgb.astype(np.float64) * 1023).astype(np.int64)
+    words = tex.packed_10bit.astype(np.int64)
+    np.testing.assert_array_equal(words & 1023, k[..., 0])
+    np.testing.assert_array_equal((words >> 10) & 1023, k[..., 1])
+    np.testing.assert_array_equal(words >> 20, k[..., 2])
+    assert tex.packed_10bit is tex.packed_10bit  # packed once per volume
+    # A volume built from the same values packs the same words.
+    np.testing.assert_array_equal(TextureVolume(tex.rgb, tex.box_mm).packed_10bit, words)
+    rgb = tex.rgb.copy()
+    rgb[0, 0, 0, 1] += 0.3 / 1023
+    with pytest.raises(ValueError, match="multiples of 1/1023"):
+        _ = TextureVolume(rgb, tex.box_mm).packed_10bit
+    rgb = tex.rgb.copy()
+    rgb[1, 0, 0, 2] = 1.0 + 1.0 / 1023
+    with pytest.raises(ValueError, match=r"lie in \[0, 1\]"):
+        _ = TextureVolume(rgb, tex.box_mm).packed_10bit
 
 
 def test_render_depth_from_the_colour_launch_is_exact() -> None:
