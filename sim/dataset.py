@@ -25,6 +25,7 @@ import logging
 import shlex
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -164,34 +165,68 @@ def _split(option: str, text: str) -> list[str]:
         raise ConfigError(option, f"cannot split {text!r} into arguments: {exc}") from None
 
 
-def generate_phantom(
-    seed: int, bites: int, out_dir: Path, phantom_cmd: str | None = None, extra_args: str = ""
-) -> Path:
-    """Run the phantom generator CLI for one seed; raises :class:`PhantomError` on failure."""
-    base = (
-        _split("--phantom-cmd", phantom_cmd)
-        if phantom_cmd
-        else [sys.executable, "-m", "phantoms", "generate"]
-    )
-    if not base:
-        raise ConfigError("--phantom-cmd", "empty generator command")
-    cmd = (
-        base
-        + ["--seed", str(seed), "--bites", str(bites), "--out", str(out_dir)]
-        + _split("--phantom-args", extra_args)
-    )
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-    except OSError as exc:  # the program itself is missing or not executable
-        raise PhantomError(
-            out_dir, f"cannot run the phantom generator {base[0]!r}: {exc.strerror or exc}"
-        ) from None
-    if proc.returncode != 0 or not (out_dir / "phantom.json").is_file():
-        tail = " | ".join((proc.stderr or proc.stdout).strip().splitlines()[-5:])
-        raise PhantomError(
-            out_dir, f"phantom generator failed (exit {proc.returncode}): {shlex.join(cmd)}: {tail}"
+class PhantomJob:
+    """One run of the phantom generator CLI in a subprocess, started at once and awaited
+    with :meth:`wait`, so that :func:`build_dataset` generates the next seed's phantom
+    while it renders this one (the generator is mostly one core of Python; the renderer
+    leaves time on the other). Output goes to a temporary file, not a pipe, so that a
+    chatty generator cannot block on a full pipe while nobody reads it."""
+
+    def __init__(
+        self,
+        seed: int,
+        bites: int,
+        out_dir: Path,
+        phantom_cmd: str | None = None,
+        extra_args: str = "",
+    ) -> None:
+        base = (
+            _split("--phantom-cmd", phantom_cmd)
+            if phantom_cmd
+            else [sys.executable, "-m", "phantoms", "generate"]
         )
-    return out_dir
+        if not base:
+            raise ConfigError("--phantom-cmd", "empty generator command")
+        self.out_dir = out_dir
+        self.cmd = (
+            base
+            + ["--seed", str(seed), "--bites", str(bites), "--out", str(out_dir)]
+            + _split("--phantom-args", extra_args)
+        )
+        self._log = tempfile.TemporaryFile(mode="w+t")
+        try:
+            self._proc = subprocess.Popen(
+                self.cmd, stdout=self._log, stderr=subprocess.STDOUT, text=True
+            )
+        except OSError as exc:  # the program itself is missing or not executable
+            self._log.close()
+            raise PhantomError(
+                out_dir, f"cannot run the phantom generator {base[0]!r}: {exc.strerror or exc}"
+            ) from None
+
+    def wait(self) -> Path:
+        """The phantom folder once the generator has finished; :class:`PhantomError` with
+        the command and the last lines of its output when it failed."""
+        try:
+            code = self._proc.wait()
+            self._log.seek(0)
+            output = self._log.read()
+        finally:
+            self._log.close()
+        if code != 0 or not (self.out_dir / "phantom.json").is_file():
+            tail = " | ".join(output.strip().splitlines()[-5:])
+            raise PhantomError(
+                self.out_dir,
+                f"phantom generator failed (exit {code}): {shlex.join(self.cmd)}: {tail}",
+            )
+        return self.out_dir
+
+    def cancel(self) -> None:
+        """Stop a generator that is still running (the build failed elsewhere)."""
+        if self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        self._log.close()
 
 
 def render_seed(phantom_seed: int, master_seed: int) -> int:
@@ -290,33 +325,66 @@ def build_dataset(
     )
     entries: list[dict[str, Any]] = []
     renders: dict[int, dict[str, Any]] = {}
-    for seed in tqdm(seeds, desc="dataset", unit="phantom", disable=not progress):
-        render_dir = out / f"seed_{seed}"
-        header_path = render_dir / "render.json"
-        seq_cfg = dataclasses.replace(cfg, seed=render_seed(seed, cfg.seed))
-        header = _finished_render(header_path, seq_cfg, bites) if resume else None
-        if header is None:
-            phantom_dir = out / "phantoms" / f"seed_{seed}"
-            if not (resume and (phantom_dir / "phantom.json").is_file()):
-                generate_phantom(seed, bites, phantom_dir, phantom_cmd, phantom_args)
-            header = render_phantom(
-                phantom_dir, render_dir, seq_cfg, include_eval=False, progress=progress
-            )
-        renders[int(seed)] = header
-        names = [("preop", 0, header["sequences"]["preop"])] + [
-            ("intraop", int(k), v)
-            for k, v in sorted(header["sequences"]["steps"].items(), key=lambda kv: int(kv[0]))
-        ]
-        for kind, step, name in names:
-            entries.append(
-                {
-                    "path": f"seed_{seed}/{name}",
-                    "phantom_seed": int(seed),
-                    "kind": kind,
-                    "step": step,
-                    "num_frames": _num_frames(render_dir / name / "sequence.json"),
-                }
-            )
+    seq_cfgs = {s: dataclasses.replace(cfg, seed=render_seed(s, cfg.seed)) for s in seeds}
+    finished = {
+        s: (
+            _finished_render(out / f"seed_{s}" / "render.json", seq_cfgs[s], bites)
+            if resume
+            else None
+        )
+        for s in seeds
+    }
+
+    def phantom_dir(seed: int) -> Path:
+        return out / "phantoms" / f"seed_{seed}"
+
+    # Seeds whose phantom must be generated, in order; one generator runs ahead.
+    to_generate = [
+        s
+        for s in seeds
+        if finished[s] is None and not (resume and (phantom_dir(s) / "phantom.json").is_file())
+    ]
+    jobs: dict[int, PhantomJob] = {}
+
+    def start_next() -> None:
+        if to_generate and len(jobs) < 1:
+            s = to_generate.pop(0)
+            jobs[s] = PhantomJob(s, bites, phantom_dir(s), phantom_cmd, phantom_args)
+
+    try:
+        for seed in tqdm(seeds, desc="dataset", unit="phantom", disable=not progress):
+            render_dir = out / f"seed_{seed}"
+            header = finished[seed]
+            if header is None:
+                start_next()
+                if seed in jobs:
+                    jobs.pop(seed).wait()
+                start_next()  # the next seed's phantom while this one renders
+                header = render_phantom(
+                    phantom_dir(seed),
+                    render_dir,
+                    seq_cfgs[seed],
+                    include_eval=False,
+                    progress=progress,
+                )
+            renders[int(seed)] = header
+            names = [("preop", 0, header["sequences"]["preop"])] + [
+                ("intraop", int(k), v)
+                for k, v in sorted(header["sequences"]["steps"].items(), key=lambda kv: int(kv[0]))
+            ]
+            for kind, step, name in names:
+                entries.append(
+                    {
+                        "path": f"seed_{seed}/{name}",
+                        "phantom_seed": int(seed),
+                        "kind": kind,
+                        "step": step,
+                        "num_frames": _num_frames(render_dir / name / "sequence.json"),
+                    }
+                )
+    finally:
+        for job in jobs.values():
+            job.cancel()
     dataset = {
         "format": DATASET_FORMAT,
         "version": DATASET_VERSION,

@@ -448,6 +448,41 @@ def test_dataset_runs_generator_subprocess_and_lists_sequences(
         )
 
 
+def test_dataset_generates_the_next_phantom_ahead_and_a_failure_keeps_earlier_seeds(
+    tmp_path: Path, tiny_sim_config: SimConfig
+) -> None:
+    """The generator of seed k+1 runs while seed k renders; when it fails, seed k's render
+    is finished and kept, and the error names the generator and its output."""
+    script = tmp_path / "gen.py"
+    script.write_text(
+        "import subprocess, sys, time\n"
+        "args = sys.argv[1:]\n"
+        "seed = args[args.index('--seed') + 1]\n"
+        f"open({str(tmp_path / 'started.txt')!r}, 'a').write(seed + ' ' + repr(time.time()) + '\\n')\n"
+        "if seed == '6':\n"
+        "    print('no bulla wall in reach')\n"
+        "    raise SystemExit(4)\n"
+        "raise SystemExit(subprocess.call([sys.executable, '-m', 'sim.synthetic', *args]))\n"
+    )
+    gen = f"{sys.executable} {script}"
+    out = tmp_path / "ds"
+    with pytest.raises(PhantomError, match="exit 4.*no bulla wall in reach"):
+        build_dataset(out, [5, 6], tiny_sim_config, bites=1, phantom_cmd=gen, progress=False)
+    started = [line.split() for line in (tmp_path / "started.txt").read_text().splitlines()]
+    assert [s for s, _ in started] == ["5", "6"]
+    # Seed 6's generator started before seed 5's render was written.
+    assert float(started[1][1]) < (out / "seed_5/render.json").stat().st_mtime
+    assert Sequence(out / "seed_5/step_01").has_rgb
+    assert not (out / "seed_6").exists() and not (out / "dataset.json").exists()
+    # --resume keeps seed 5 and generates nothing for it again.
+    (tmp_path / "started.txt").unlink()
+    gen_ok = f"{sys.executable} -m sim.synthetic"
+    ds = build_dataset(
+        out, [5, 6], tiny_sim_config, bites=1, phantom_cmd=gen_ok, resume=True, progress=False
+    )
+    assert [e["phantom_seed"] for e in ds["sequences"]] == [5, 5, 6, 6]
+
+
 def test_render_draws_appearance_when_randomization_is_enabled(
     tmp_path: Path, tiny_sim_config: SimConfig
 ) -> None:
@@ -511,9 +546,7 @@ def test_scalar_variant_fallback_renders_depth_and_rgb(
     assert proc.returncode == 0, proc.stderr
     assert json.loads((out / "render.json").read_text())["variant"] == "scalar_rgb"
     seq = Sequence(out / "step_01")
-    caster = MeshRaycaster.from_trimesh(
-        load_mesh(phantom / "meshes/step_01.ply"), backend="open3d"
-    )
+    caster = MeshRaycaster.from_trimesh(load_mesh(phantom / "meshes/step_01.ply"), backend="open3d")
     for i in range(2):
         d, ref = seq.depth_mm(i), caster.render_depth(seq.camera, seq.true_poses[i])
         both = np.isfinite(d) & np.isfinite(ref)
