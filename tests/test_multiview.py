@@ -91,6 +91,7 @@ def test_confirmation_is_a_pure_function_of_the_detections(scene: dict) -> None:
             index=i, used=True, threshold_mm=1.0, T_world_from_cam=P[i], mask=deeper.copy(),
             m_prime=raw, m_t=renders[i], m_raw=raw,
         )  # fmt: skip
+
     none = np.zeros(cam.shape, bool)
     dets = [det(0, blob)] + [det(i, none) for i in range(1, 6)]
     out = confirm_changes(dets, cam, ChangeConfig(min_views=3, min_agreement=0.8))
