@@ -10,8 +10,16 @@ the renderer's own RGB-D frame rate measured in the same run (everything around 
   (phantom generation in a subprocess, texture baking, path planning, rendering, encoding
   and atomic writes included).
 
-Usage: python benchmarks/bench_dataset.py [--seeds 0-1] [--frames 40] [--width 320]
-       [--height 256] [--spp 16] [--phantom-cmd "python -m sim.synthetic"] [--tools]
+Usage: python benchmarks/bench_dataset.py [--seeds 0-1] [--frames 80] [--preop-frames 60]
+       [--bites 2] [--width 320] [--height 256] [--spp 16]
+       [--phantom-cmd "python -m sim.synthetic"] [--tools]
+
+The frame counts and bites default to ``sim dataset``'s own (a 60-frame preoperative sweep
+and two 80-frame intraoperative steps per phantom): the command is measured as it runs
+when nobody passes options. Everything per phantom (generation, texture baking, renderer
+set-up) weighs more with fewer frames per phantom (``--frames 40 --preop-frames 40
+--bites 1``, the default before 2026-12-02); the first phantom's generation cannot overlap
+any render, so more seeds amortise it.
 
 Without ``--phantom-cmd`` the phantoms are the toy of :mod:`sim.synthetic` (quick); pass
 ``"python -m phantoms generate"`` for the anatomy generator. Prints ``name: value`` lines,
@@ -42,16 +50,21 @@ from sim.render import MeshRenderer  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", default="0-1", help="phantom seeds (default 0-1)")
-    p.add_argument("--frames", type=int, default=40, help="frames per intraoperative step")
+    p.add_argument(
+        "--frames", type=int, default=80, help="frames per intraoperative step (default 80)"
+    )
+    p.add_argument(
+        "--preop-frames", type=int, default=60, help="frames of the preop sweep (default 60)"
+    )
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=256)
     p.add_argument("--spp", type=int, default=16)
-    p.add_argument("--bites", type=int, default=1)
+    p.add_argument("--bites", type=int, default=2, help="surgical steps per phantom (default 2)")
     p.add_argument("--phantom-cmd", default=f"{sys.executable} -m sim.synthetic")
     p.add_argument("--tools", action="store_true", help="instruments in view")
     args = p.parse_args(argv)
-    if args.frames < 1 or args.spp < 1:
-        p.error("--frames and --spp must be >= 1")
+    if min(args.frames, args.preop_frames, args.spp, args.bites) < 1:
+        p.error("--frames, --preop-frames, --spp and --bites must be >= 1")
     seeds = parse_seeds(args.seeds)
     cfg = replace_in(
         SimConfig(),
@@ -60,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             "camera.height": args.height,
             "imaging.spp": args.spp,
             "paths.intraop_frames": args.frames,
-            "paths.preop_frames": args.frames,
+            "paths.preop_frames": args.preop_frames,
             "tools.enabled": args.tools,
         },
     )
@@ -92,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"variant: {r.variant}")
     print(f"cpu_simd: {cpu_simd()}")
     print(f"image: {args.width}x{args.height}, spp {args.spp}, tools {args.tools}")
+    print(f"seeds: {args.seeds}, frames {args.preop_frames} + {args.bites} x {args.frames}")
     print(f"dataset_frames: {ds['num_frames']}")
     print(f"dataset_wall_s: {wall:.2f}")
     print(f"render_rgbd_fps: {render_fps:.2f}")
