@@ -24,10 +24,12 @@ prelude, multi-view confirmation): :mod:`chisel.batch`. File I/O lives in
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 
 import cv2
+import numba
 import numpy as np
 
 from chisel.carve import CARVE_DELETED, CARVE_FUSE, CARVE_NONE, carve_first_layer
@@ -234,12 +236,65 @@ class ChiselUpdater:
         with M_t is skipped (``used = False``) and leaves the model untouched; keep_maps :
         the report keeps the carved change mask.
         """
-        renderer = self.renderer
+        return self._carve(frame, *self._prepare(frame), keep_maps)
+
+    def process_stream(
+        self, frames: Iterable[Frame], keep_maps: bool = False
+    ) -> Iterator[FrameReport]:
+        """:meth:`process` over ``frames`` in order, each frame's render of M_t and depth
+        estimate running on a worker thread while the frame before it is detected and
+        carved.
+
+        Both depend only on the frame and on M_t, the model's surface at step start, never
+        on what earlier frames of the step carved: reports and model are those of
+        :meth:`process` frame by frame. A frame's report is yielded once the next frame
+        has arrived (or the frames have ended): one frame of latency, for a rate near the
+        slower half instead of the sum of both (a network's inference and the ray cast
+        release the GIL). Meanwhile numba's kernels run on the calling thread alone.
+        ``frames`` may be a live source. The depth source is called from one worker
+        thread, one frame at a time, so it must not depend on the caller's thread
+        (TorchScript modules and Mitsuba ray casts do not). An error of frame i is raised
+        after the reports of the frames before it.
+        """
+
+        def carve(
+            job: tuple[Frame, Future[tuple[np.ndarray, np.ndarray, np.ndarray]]],
+        ) -> FrameReport:
+            frame, prepared = job
+            T, R, estimate = prepared.result()
+            # numba's kernels run on this thread alone (the setting is per thread): its
+            # OpenMP workers spin-wait between kernels and would take the core that the
+            # worker's inference needs (the overlap then gained nothing).
+            threads = numba.get_num_threads()
+            numba.set_num_threads(1)
+            try:
+                return self._carve(frame, T, R, estimate, keep_maps)
+            finally:
+                numba.set_num_threads(threads)
+
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="chisel-depth") as pool:
+            pending = None
+            for frame in frames:
+                job = (frame, pool.submit(self._prepare, frame))
+                if pending is not None:
+                    yield carve(pending)
+                pending = job
+            if pending is not None:
+                yield carve(pending)
+
+    def _prepare(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The frame's checked tracked pose, M_t rendered there, and the validated estimate."""
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
-        R = renderer.render(self.camera, T)
-        inp = FrameInput(frame, T, self.estimate(frame, R), render_mm=R)
+        R = self.renderer.render(self.camera, T)
+        return T, R, self.estimate(frame, R)
+
+    def _carve(
+        self, frame: Frame, T: np.ndarray, R: np.ndarray, estimate: np.ndarray, keep_maps: bool
+    ) -> FrameReport:
+        """Detect a frame's change from its estimate and carve it into the model."""
+        inp = FrameInput(frame, T, estimate, render_mm=R)
         ctx = Context(
-            self.camera, renderer, self.cfg, scale_free(self.cfg, self.depth_source),
+            self.camera, self.renderer, self.cfg, scale_free(self.cfg, self.depth_source),
             self.hand_eye, self._hand_eye.prior, self._hand_eye.may_retry(self.cfg.frame_ransac),
         )  # fmt: skip
         det = detect(inp, ctx)
