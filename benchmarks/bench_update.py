@@ -18,6 +18,9 @@ Measured, at 320x256 and 0.5 mm voxels by default:
   time; ``batch_update_fps`` is the whole step through ``update_step`` (``chisel update``),
   which adds step-level work that needs every frame first (sequence RANSAC + ICP, the
   hand-eye pass, the multi-view confirmation of the masks);
+* ``update_fps_process_stream``: the same streaming step through
+  ``ChiselUpdater.process_stream`` (the next frame's render and depth overlap this frame's
+  detection and carving on a worker thread; the same model, checked);
 * peak resident memory of the process.
 
 * the same streaming step from a whole-CT model (``build_preop_model(..., ct=...)``, the
@@ -269,6 +272,16 @@ def main() -> int:
     print(f"update_frames_used_streaming: {sum(r.used for r in streamed)}/{args.frames}")
     fell_back = sum(1 for r in streamed if r.registration and "fallback" in r.registration)
     print(f"update_frames_tracked_pose_streaming: {fell_back}/{args.frames}")
+    # The same step through process_stream: the next frame's render of M_t and depth
+    # estimate (here a ray cast) overlap this frame's detection and carving.
+    upd_o = ChiselUpdater(model, cam, source, ucfg)
+    upd_o.begin_step()
+    t0 = time.perf_counter()
+    overlapped = list(upd_o.process_stream(frames))
+    overlap_s = time.perf_counter() - t0
+    same = upd_o.model.tsdf.tobytes() == upd.model.tsdf.tobytes()
+    print(f"update_process_stream_same_model: {same} ({len(overlapped)} frames)")
+    print(f"update_fps_process_stream: {args.frames / overlap_s:.1f}")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"peak_rss_mib: {peak:.0f}")
     print(f"update_fps: {args.frames / stream_s:.1f}")
