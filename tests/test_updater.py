@@ -266,7 +266,8 @@ def test_streamed_frames_overlap_the_estimate_and_match_frame_by_frame(scene: di
         )
     assert np.array_equal(streamed.hand_eye, one.hand_eye)
     # Equal to the last float bit but for a voxel or two: process() itself varies there
-    # from run to run (2 voxels by 1 ulp in about a third of runs, one thread or two).
+    # from run to run through the registration (2 voxels by 1 ulp in about a third of
+    # runs; with registration off every run repeats to the bit).
     np.testing.assert_allclose(streamed.model.tsdf, one.model.tsdf, rtol=0, atol=1e-6)
     assert one.model.weight.tobytes() == streamed.model.weight.tobytes()
     # Every estimate ran on the worker thread, frame i + 1's before frame i's report.
