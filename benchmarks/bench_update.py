@@ -58,6 +58,7 @@ from chisel.depth_source import CallableDepth
 from chisel.fusion import integrate
 from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
+from chisel.reports import FrameReport
 from chisel.update_config import UpdateConfig
 from chisel.updater import ChiselUpdater
 
@@ -156,6 +157,19 @@ def bench_fusion(model0: TsdfModel, cam: Camera, poses: np.ndarray, depths: list
                           trunc_voxel_multiplier=trunc_mult)  # fmt: skip
         theirs.append(time.perf_counter() - t0)
     return min(ours) / len(poses), min(theirs) / len(poses)
+
+
+def _stream_step(
+    model: TsdfModel, cam: Camera, source: CallableDepth, cfg: UpdateConfig,
+    frames: list[Frame], overlap: bool = False,
+) -> tuple[ChiselUpdater, list[FrameReport], float]:  # fmt: skip
+    """One streaming step (``process`` frame by frame, or ``process_stream`` when
+    ``overlap``): the updater after it, its reports and the wall seconds it took."""
+    upd = ChiselUpdater(model, cam, source, cfg)
+    upd.begin_step()
+    t0 = time.perf_counter()
+    reports = list(upd.process_stream(frames)) if overlap else [upd.process(f) for f in frames]
+    return upd, reports, time.perf_counter() - t0
 
 
 def main() -> int:
@@ -257,28 +271,16 @@ def main() -> int:
         BuildConfig(voxel_size_mm=args.voxel_mm, trunc_mm=4 * args.voxel_mm, max_miss_fraction=0.75),
         ct=ct_from_mesh(scene["preop"], "preop mesh"),
     )  # fmt: skip
-    upd_ct = ChiselUpdater(ct_model, cam, source, ucfg)
-    upd_ct.begin_step()
-    t0 = time.perf_counter()
-    streamed_ct = [upd_ct.process(f) for f in frames]
-    stream_ct_s = time.perf_counter() - t0
+    _, streamed_ct, stream_ct_s = _stream_step(ct_model, cam, source, ucfg, frames)
     print(f"update_frames_used_streaming_ct: {sum(r.used for r in streamed_ct)}/{args.frames}")
     print(f"update_fps_from_ct: {args.frames / stream_ct_s:.1f}")
-    upd = ChiselUpdater(model, cam, source, ucfg)
-    upd.begin_step()
-    t0 = time.perf_counter()
-    streamed = [upd.process(f) for f in frames]
-    stream_s = time.perf_counter() - t0
+    upd, streamed, stream_s = _stream_step(model, cam, source, ucfg, frames)
     print(f"update_frames_used_streaming: {sum(r.used for r in streamed)}/{args.frames}")
     fell_back = sum(1 for r in streamed if r.registration and "fallback" in r.registration)
     print(f"update_frames_tracked_pose_streaming: {fell_back}/{args.frames}")
     # The same step through process_stream: the next frame's render of M_t and depth
     # estimate (here a ray cast) overlap this frame's detection and carving.
-    upd_o = ChiselUpdater(model, cam, source, ucfg)
-    upd_o.begin_step()
-    t0 = time.perf_counter()
-    overlapped = list(upd_o.process_stream(frames))
-    overlap_s = time.perf_counter() - t0
+    upd_o, overlapped, overlap_s = _stream_step(model, cam, source, ucfg, frames, overlap=True)
     same = upd_o.model.tsdf.tobytes() == upd.model.tsdf.tobytes()
     print(f"update_process_stream_same_model: {same} ({len(overlapped)} frames)")
     print(f"update_fps_process_stream: {args.frames / overlap_s:.1f}")
