@@ -84,3 +84,15 @@ def test_cli_corrupt_files_are_one_line_naming_them(
     assert chisel_main(argv) == 1
     err = capsys.readouterr().err
     assert f"{metrics}: JSON nested deeper" in err and "Traceback" not in err
+
+
+def test_cli_eval_every_is_checked_before_the_data_and_refused_for_monocular(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out.pt"
+    base = ["depth", "train", "--data", str(tmp_path / "missing"), "--out", str(out)]
+    assert chisel_main([*base, "--kind", "change-aware", "--eval-every", "0"]) == 1
+    assert "eval_every" in capsys.readouterr().err
+    assert chisel_main([*base, "--kind", "monocular", "--eval-every", "50"]) == 1
+    assert "--eval-every: is an option of --kind change-aware only" in capsys.readouterr().err
+    assert not out.exists()

@@ -48,6 +48,7 @@ TRAIN_OPTS = [
     "val_fraction",
     "frame_step",
     "widths",
+    "eval_every",
     "max_minutes",
     "threads",
     "device",
@@ -72,6 +73,13 @@ FINETUNE_OPTS = [
 
 def train(args: argparse.Namespace) -> int:
     """``chisel depth train --kind change-aware``."""
+    # Options are checked before hours of data are read.
+    cfg = ChangeTrainConfig(
+        steps=args.steps,
+        max_minutes=args.max_minutes,
+        eval_every=args.eval_every,
+        **trainer_options(args),
+    )
     refs = read_step_dataset(args.data, args.allow_outside_manifest)
     check_change_training_seeds(refs)
     seeds = sorted({r.seed for r in refs})
@@ -82,7 +90,6 @@ def train(args: argparse.Namespace) -> int:
     pairs = build_prior_set(train_refs, frame_step=args.frame_step)
     val_pairs = build_prior_set(val_refs, frame_step=args.frame_step) if val_refs else None
     net_config = ChangeNetConfig(widths=args.widths or ChangeNetConfig().widths)
-    cfg = ChangeTrainConfig(steps=args.steps, max_minutes=args.max_minutes, **trainer_options(args))
     result = train_change_aware(pairs, cfg, net_config, val_pairs=val_pairs, progress=True)
     info = {
         "kind": "train",

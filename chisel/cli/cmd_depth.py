@@ -60,17 +60,22 @@ _KINDS = ("monocular", "change-aware")
 
 
 def _change_aware(args: argparse.Namespace) -> bool:
-    """True for --kind change-aware; --steps/--mesh are refused for the monocular kind."""
+    """True for --kind change-aware; --steps/--mesh/--eval-every are refused for the monocular
+    kind."""
     if args.kind == "change-aware":
         for flag in ("size", "blocks"):
             if getattr(args, flag, None) is not None:
                 raise InvalidInputError(f"--{flag}", "is an option of the monocular kind only")
         if args.steps is None:
             args.steps = 600 if args.depth_command == "train" else 60
+        if getattr(args, "eval_every", 0) is None:
+            args.eval_every = 100
         return True
-    for flag in ("steps", "mesh"):
+    for flag in ("steps", "mesh", "eval_every"):
         if getattr(args, flag, None) is not None:
-            raise InvalidInputError(f"--{flag}", "is an option of --kind change-aware only")
+            raise InvalidInputError(
+                "--" + flag.replace("_", "-"), "is an option of --kind change-aware only"
+            )
     return False
 
 
@@ -364,6 +369,12 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         help="train at WIDTHxHEIGHT (default: the sequences' own size)",
     )
     t.add_argument("--widths", type=_ints, default=None, help="encoder widths, e.g. 16,24,32,48,64")
+    t.add_argument(
+        "--eval-every",
+        type=int,
+        default=None,
+        help="change-aware only: validate every N steps, keep the best (default 100)",
+    )
     t.add_argument(
         "--blocks", type=_ints, default=None, help="residual blocks per stage, e.g. 1,1,1,2,2"
     )
