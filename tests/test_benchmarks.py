@@ -147,11 +147,13 @@ def test_bench_fidelity_figures_from_a_table() -> None:
                 "no_update": cell(2.0),
                 "updated": cell(1.0, mask_precision=0.8, mask_recall=0.6, removed_dice=0.7),
                 "depth_ablation": cell(0.25, removed_dice=0.9, removed_hd95_mm=0.5),
+                "change_aware": cell(0.5, mask_precision=0.9, mask_recall=0.8, removed_dice=0.85),
             }},
             {"step": 2, "methods": {
                 "no_update": cell(4.0),
                 "updated": cell(4.4, mask_precision=None, mask_recall=0.9, removed_dice=0.8),
                 "depth_ablation": cell(0.4, removed_dice=0.95, removed_hd95_mm=1.2),
+                "change_aware": cell(1.0, mask_precision=0.95, mask_recall=0.9, removed_dice=0.82),
             }},
         ]
     }  # fmt: skip
@@ -167,4 +169,12 @@ def test_bench_fidelity_figures_from_a_table() -> None:
     other = {**f, "updated_ratio_max": 0.7, "exact_removed_dice_min": 0.8}
     assert fid.worst({0: f, 1: other}, "updated_ratio_max") == pytest.approx(1.1)
     assert fid.worst({0: f, 1: other}, "exact_removed_dice_min") == 0.8
+    # the change-aware row is scored alike, against issue 20's bounds
+    assert f["change_aware_ratio_steps2_max"] == pytest.approx(0.25)
+    assert f["change_aware_ratio_max"] == pytest.approx(0.25)
+    assert f["change_aware_mask_precision_min"] == 0.9
+    assert f["change_aware_mask_recall_min"] == 0.8 and f["change_aware_removed_dice_min"] == 0.82
+    assert fid.meets("change_aware_ratio_steps2_max", 0.25)
+    assert not fid.meets("change_aware_mask_recall_min", 0.8)  # 0.85 there, 0.7 for updated
+    assert fid.meets("updated_mask_recall_min", 0.8)
     assert fid.parse_seeds("0-2,5") == [0, 1, 2, 5]
