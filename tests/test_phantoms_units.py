@@ -12,7 +12,7 @@ import pytest
 import trimesh
 from skimage.measure import marching_cubes
 
-from phantoms.anatomy import arrays_from_manifold, manifold_from_arrays
+from phantoms.anatomy import arrays_from_manifold, drop_air_pockets, manifold_from_arrays
 from phantoms.bites import Bite, apply_bites, cutter_manifold
 from phantoms.ct import (
     ISO_HU,
@@ -331,3 +331,22 @@ def test_phantoms_builds_on_chisels_base_only():
         "assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_air_pockets_below_a_cubic_millimetre_are_dropped_and_one_part_is_kept_as_is():
+    big = m3d.Manifold.sphere(5.0, 48)
+    pocket = m3d.Manifold.sphere(0.3, 16).translate((20.0, 0.0, 0.0))  # 0.11 mm^3
+    second = m3d.Manifold.sphere(2.0, 32).translate((-20.0, 0.0, 0.0))
+    kept = drop_air_pockets(m3d.Manifold.compose([big, pocket, second]))
+    assert len(kept.decompose()) == 2
+    assert kept.volume() == pytest.approx(big.volume() + second.volume())
+    assert drop_air_pockets(big) is big
+
+
+def test_seed_whose_airway_field_pinched_off_a_pocket_builds():
+    """Seed 1233's airway field closed a 0.1 mm^3 pocket: an air void no cell explains,
+    and the generator refused the seed (found rendering a training set)."""
+    from phantoms.anatomy import build_anatomy
+
+    anatomy = build_anatomy(sample_params(1233, {}), 1233)
+    assert anatomy.n_voids == len(anatomy.cells)
