@@ -183,6 +183,9 @@ def main() -> int:
             )
             print(f"{name}_worst: {worst(per_seed, name):.3f}")
     print(f"workflow_s: {wall_s:.1f}")
+    if any("change_aware_ratio_max" in f for f in per_seed.values()):
+        ratio = worst(per_seed, "change_aware_ratio_max")
+        print(f"change_aware_vs_no_update_worst_ratio: {ratio:.3f}")
     if any("updated_ratio_max" in f for f in per_seed.values()):
         print(f"updated_vs_no_update_worst_ratio: {worst(per_seed, 'updated_ratio_max'):.3f}")
     return 0

@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Reproduce chisel/depth/checkpoints/change_aware.pt (issue 20): render the training
-# phantoms (seeds 1000-1127 and 1200-1247, never the evaluation seeds 0-99), then train.
+# phantoms (seeds 1000-1127 and 1200-1248, never the evaluation seeds 0-99), then train.
 #   scripts/train_change_aware.sh [WORK_DIR] [OUT.pt]
 # Two datasets (docs/depth.md, "The shipped change-aware checkpoint"):
 # - FX: the effects network's data (the command in chisel/depth/checkpoints/effects.json):
 #   128 phantoms, the uncinectomy's first step, instruments, blood, smoke and blur drawn per
 #   phantom, 40 + 40 frames (~55 min on 2 cores);
-# - CA5: 48 phantoms with all five steps of the uncinectomy (later steps: the prior already
+# - CA5: 49 phantoms with all five steps of the uncinectomy (later steps: the prior already
 #   shows earlier cuts), clean frames, 8 + 5 x 12 frames (~16 min).
 # Training reads every 2nd frame (~6 700 pairs, ~9 GB in memory) and stops at 28 minutes.
 set -euo pipefail
@@ -18,9 +18,9 @@ if [ ! -f "$WORK/fx/dataset.json" ]; then
         --preop-frames 40 --tools --config config/sim_train_effects.yaml --quiet
 fi
 if [ ! -f "$WORK/ca5/dataset.json" ]; then
-    "$PY" -m sim dataset --seeds 1200-1247 --out "$WORK/ca5" --bites 5 \
+    "$PY" -m sim dataset --seeds 1200-1248 --out "$WORK/ca5" --bites 5 \
         --phantom-args "--procedure uncinectomy" --frames 12 --preop-frames 8 --spp 4 --quiet
 fi
 "$PY" -m chisel depth train --kind change-aware --data "$WORK/fx" "$WORK/ca5" --out "$OUT" \
-    --frame-step 2 --val-fraction 0.1 --eval-every 250 \
-    --steps 4000 --batch-size 8 --lr 3e-3 --seed 0 --threads 2 --max-minutes 28
+    --frame-step 2 --val-fraction 0.1 --eval-every 500 \
+    --steps 7000 --batch-size 8 --lr 3e-3 --seed 0 --threads 2 --max-minutes 28
