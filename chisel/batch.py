@@ -19,7 +19,7 @@ import numpy as np
 from chisel.change import solve_scale
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
-from chisel.depth_source import estimate_depth, is_metric, wants_prior
+from chisel.depth_source import estimate_depth, is_estimate, is_metric, wants_prior
 from chisel.detect import (
     Context,
     FrameInput,
@@ -195,8 +195,9 @@ def update_step(
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)
     votes = np.zeros(new.shape, dtype=np.uint8)
+    estimate = is_estimate(depth_source)
     reports = [
-        fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps, votes=votes)
+        fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps, votes=votes, estimate=estimate)
         for f, d in zip(frames, dets, strict=True)
     ]
     return finish_step(new, reports, plan.sequence_registration, step_cfg)

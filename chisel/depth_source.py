@@ -17,6 +17,12 @@ An optional attribute ``is_metric: bool`` declares the depth to be in millimetre
 is still solved robustly so small calibration errors are absorbed. Sources without the
 attribute are treated as scale-free.
 
+A source that declares ``is_estimate = True`` is carved like a noisy estimate whatever
+its frames' measured noise (:func:`is_estimate`): the change-aware network returns the
+render itself where it sees no change, so its noise measured against the render is ~0
+and its frames would carve as exact depth does, while a region it gets wrong deletes
+tissue that other views would not confirm (docs/updater.md).
+
 A source that declares ``wants_prior = True`` is called as ``source(frame, prior_mm=R)``
 instead, with ``R`` the (H, W) float32 render of the model M_t at the frame's tracked pose
 (mm, NaN = no surface), the render the updater makes anyway (the change-aware network,
@@ -131,6 +137,13 @@ class CallableDepth:
 def is_metric(source: object) -> bool:
     """True if ``source`` declares millimetre depth (``is_metric`` attribute)."""
     return bool(getattr(source, "is_metric", False))
+
+
+def is_estimate(source: object) -> bool:
+    """True if ``source`` declares ``is_estimate``: a learnt estimate whose errors are
+    spatially structured, so its frames are carved as noisy ones (deletion votes, one layer;
+    ``UpdateConfig.noisy_votes``) even when its measured noise is below the threshold."""
+    return bool(getattr(source, "is_estimate", False))
 
 
 def wants_prior(source: object) -> bool:

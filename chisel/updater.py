@@ -35,7 +35,7 @@ import numpy as np
 from chisel.carve import CARVE_DELETED, CARVE_FUSE, CARVE_NONE, carve_first_layer
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, check_rigid
-from chisel.depth_source import estimate_depth, is_metric
+from chisel.depth_source import estimate_depth, is_estimate, is_metric
 from chisel.detect import (
     Context,
     Detection,
@@ -55,13 +55,14 @@ from chisel.update_config import UpdateConfig
 log = logging.getLogger(__name__)
 
 
-def is_precise(threshold_mm: float, cfg: UpdateConfig) -> bool:
+def is_precise(threshold_mm: float, cfg: UpdateConfig, estimate: bool = False) -> bool:
     """Whether a frame's estimate can place a surface to within the change threshold: its
     noise did not raise its threshold (:func:`chisel.change.frame_threshold`) above
-    ``cfg.change.threshold_mm``, or ``cfg.noisy_carve`` is off."""
+    ``cfg.change.threshold_mm`` and its source is not a learnt estimate
+    (:func:`chisel.depth_source.is_estimate`), or ``cfg.noisy_carve`` is off."""
     if not cfg.noisy_carve:
         return True
-    return threshold_mm <= cfg.change.threshold_mm * (1.0 + 1e-6)
+    return not estimate and threshold_mm <= cfg.change.threshold_mm * (1.0 + 1e-6)
 
 
 def fuse(
@@ -73,6 +74,7 @@ def fuse(
     rgb: np.ndarray | None = None,
     keep_mask: bool = False,
     votes: np.ndarray | None = None,
+    estimate: bool = False,
 ) -> FrameReport:
     """Carve a detected frame's change mask into ``model`` (in place): the frame's report.
 
@@ -97,7 +99,7 @@ def fuse(
         # depth only where the model holds nothing behind.
         status, voxels_deleted = carve_first_layer(
             model, camera, det.T_world_from_cam, det.m_t, det.m_prime, mask, det.threshold_mm,
-            reset=reset, precise=is_precise(det.threshold_mm, cfg), votes=votes,
+            reset=reset, precise=is_precise(det.threshold_mm, cfg, estimate), votes=votes,
             noisy_votes=cfg.noisy_votes,
         )  # fmt: skip
         deleted_px = int((status == CARVE_DELETED).sum())
@@ -301,7 +303,7 @@ class ChiselUpdater:
         self._hand_eye.learn(det)
         rep = fuse(
             self.model, self.camera, det, self.cfg, self._reset_grid(), frame.rgb, keep_maps,
-            votes=self._votes,
+            votes=self._votes, estimate=is_estimate(self.depth_source),
         )  # fmt: skip
         self._frames.append(rep)
         return rep

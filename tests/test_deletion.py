@@ -284,3 +284,39 @@ def test_noisy_votes_is_checked() -> None:
     for bad in (0, 256):
         with pytest.raises(InvalidInputError, match="noisy_votes"):
             UpdateConfig(noisy_votes=bad)
+
+
+class _LearntExactDepth(GroundTruthDepth):
+    """Exact depth declared a learnt estimate (as the change-aware network is)."""
+
+    is_estimate = True
+
+
+def test_a_learnt_estimate_is_carved_as_noisy_whatever_its_measured_noise(scene: dict) -> None:
+    # Exact depth measures no noise, so it carves as precise; declared a learnt estimate
+    # (is_estimate), its frames only vote: two frames that see the window free nothing,
+    # while two frames of plain exact depth already open it (multi-view confirmation off,
+    # so that two frames may carve at all).
+    from chisel.change import ChangeConfig
+    from chisel.updater import ChiselUpdater
+
+    true = _poses(30, seed=2)
+    fr = _frames(scene["after"], true, true)
+    cfg = UpdateConfig(register=False, noisy_votes=3, change=ChangeConfig(min_views=0))
+    plain, _ = update_step(scene["model"], CAM, fr[:2], GroundTruthDepth(), cfg)
+    learnt, rep = update_step(scene["model"], CAM, fr[:2], _LearntExactDepth(), cfg)
+    opened = (scene["model"].tsdf < 0) & (plain.tsdf > 0)
+    assert opened.sum() > 20
+    assert not ((scene["model"].tsdf < 0) & (learnt.tsdf > 0)).any()
+    assert sum(f["deleted_px"] for f in rep.to_dict()["frames"]) > 0  # they voted
+    three, _ = update_step(scene["model"], CAM, fr[:3], _LearntExactDepth(), cfg)
+    assert ((scene["model"].tsdf < 0) & (three.tsdf > 0)).sum() > 20  # the third vote
+    # With every frame (confirmation back on) the window opens to within two voxels.
+    every = UpdateConfig(register=False, noisy_votes=3)
+    learnt, _ = update_step(scene["model"], CAM, fr, _LearntExactDepth(), every)
+    _check_window(scene["model"], learnt, 2 * VOXEL_MM)
+    up = ChiselUpdater(scene["model"].copy(), CAM, _LearntExactDepth(), cfg)
+    up.begin_step()
+    for f in fr[:2]:
+        up.process(f)
+    assert not ((scene["model"].tsdf < 0) & (up.model.tsdf > 0)).any()

@@ -35,6 +35,7 @@ class ChangeAwareDepthSource:
     is_metric = True
     wants_prior = True
     needs_rgb = True
+    is_estimate = True
 
     def __init__(
         self, module: torch.nn.Module | torch.jit.ScriptModule, device: str = "cpu",
