@@ -167,9 +167,10 @@ def build_prior_set(
     # Checked and sized before anything is rendered: the pairs are written into arrays
     # allocated once (a list of frames stacked at the end held every frame twice, ~17 GB
     # at peak for the 6 700 frames of the shipped checkpoint's data).
-    seqs = [Sequence(ref.path) for ref in refs]
+    checked: list[tuple[StepSequenceRef, Sequence, np.ndarray]] = []
     shape: tuple[int, int] | None = None
-    for ref, seq in zip(refs, seqs, strict=True):
+    for ref in refs:
+        seq = Sequence(ref.path)
         if not (seq.has_rgb and seq.has_depth) or seq.true_poses is None:
             raise InvalidInputError(
                 ref.path,
@@ -181,20 +182,21 @@ def build_prior_set(
             raise InvalidInputError(
                 ref.path, f"image size {seq.camera.shape} != {shape} of earlier sequences"
             )
-    total = sum(len(_frame_indices(len(seq), frame_step)) for seq in seqs)
+        checked.append((ref, seq, seq.true_poses))
+    total = sum(len(_frame_indices(len(seq), frame_step)) for _, seq, _ in checked)
     h, w = shape if shape is not None else (0, 0)
     rgb_all = np.empty((total, h, w, 3), np.uint8)
     prior_all, target_all, true_all = (np.empty((total, h, w), np.float32) for _ in range(3))
     changed_all = np.empty((total, h, w), bool)
     sources: list[str] = []
     n = 0
-    for ref, seq in zip(refs, seqs, strict=True):
+    for ref, seq, true_poses in checked:
         mesh = phantom_step_mesh(ref.phantom_dir, max(ref.step - 1, 0))
         rc = MeshRaycaster(mesh.vertices, mesh.faces)
         idx = _frame_indices(len(seq), frame_step)
         prior = rc.render_depths(seq.camera, seq.poses[idx])
         if target_pose == "true":
-            reference = rc.render_depths(seq.camera, seq.true_poses[idx])
+            reference = rc.render_depths(seq.camera, true_poses[idx])
         else:
             now = phantom_step_mesh(ref.phantom_dir, ref.step)
             reference = prior
