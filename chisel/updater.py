@@ -81,8 +81,9 @@ def fuse(
     reset : (X, Y, Z) uint8, the step's voxels already reset (updated in place); rgb :
     (H, W, 3) uint8 colour of the frame (used when the model has colour); votes : (X, Y, Z)
     uint8, the step's deletion votes of noisy frames (``cfg.noisy_votes``; updated in
-    place; None = a noisy frame deletes alone). A frame not used (its scale could not be
-    solved) only gets its report.
+    place; None = a noisy frame deletes alone); estimate : the frame's depth source is a
+    learnt estimate (:func:`chisel.depth_source.is_estimate`), carved as a noisy frame. A
+    frame not used (its scale could not be solved) only gets its report.
     """
     if not det.used:
         return FrameReport(
