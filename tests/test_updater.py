@@ -2,6 +2,7 @@
 
 import threading
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -37,6 +38,7 @@ from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
 from chisel.registration import RegistrationConfig
 from chisel.render import ModelRenderer
+from chisel.reports import FrameReport
 from chisel.update_config import UpdateConfig
 from chisel.updater import ChiselUpdater
 
@@ -234,24 +236,41 @@ def test_streaming_updater_tracks_hand_eye(scene: dict) -> None:
         upd.process(fr[0])
 
 
-def test_streamed_frames_overlap_the_estimate_and_match_frame_by_frame(scene: dict) -> None:
+def test_streamed_frames_overlap_the_estimate_and_match_frame_by_frame(
+    scene: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
     cam, model = scene["cam"], scene["model"]
     P = poses(6, seed=11)
     E = pose_error(2.0, 2.0, seed=4)
     fr = frames(scene["bitten"], cam, P, np.stack([T @ E for T in P]))
     fr = [Frame(f.index, f.T_world_from_cam, depth_mm=f.depth_mm) for f in fr]
     events: list[tuple[str, int, str]] = []
+    started = {f.index: threading.Event() for f in fr}
 
     def source(f: Frame) -> np.ndarray:
         events.append(("estimate", f.index, threading.current_thread().name))
+        started[f.index].set()
         return f.depth_mm
 
     one = ChiselUpdater(model, cam, source)
     one.begin_step()
     ref = [one.process(f) for f in fr]
     events.clear()
+    for e in started.values():
+        e.clear()
     streamed = ChiselUpdater(model, cam, source)
     streamed.begin_step()
+    carve = streamed._carve
+
+    def carve_once_the_next_estimate_ran(frame: Frame, *args: Any) -> FrameReport:
+        # Frame i is carved only after frame i + 1's estimate has run: a process_stream
+        # that estimated a frame after carving the one before would wait here in vain.
+        # (Without this wait the order below was a race: it failed once in CI, under load.)
+        nxt = started.get(frame.index + 1)
+        assert nxt is None or nxt.wait(timeout=60), f"frame {frame.index + 1} not estimated"
+        return carve(frame, *args)
+
+    monkeypatch.setattr(streamed, "_carve", carve_once_the_next_estimate_ran)
     got = []
     for rep in streamed.process_stream(iter(fr)):
         events.append(("report", rep.index, threading.current_thread().name))
