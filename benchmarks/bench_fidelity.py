@@ -22,7 +22,7 @@ import argparse
 import json
 import sys
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +62,7 @@ def _network_figures(
     cells: Mapping[int, Mapping[str, Mapping[str, Any]]],
     steps: list[int],
     method: str,
-    ratio: Any,
+    ratio: Callable[[str, int], float],
 ) -> dict[str, float]:
     later = [s for s in steps if s >= 2] or steps
 

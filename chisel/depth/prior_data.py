@@ -167,7 +167,7 @@ def build_prior_set(
     # Checked and sized before anything is rendered: the pairs are written into arrays
     # allocated once (a list of frames stacked at the end held every frame twice, ~17 GB
     # at peak for the 6 700 frames of the shipped checkpoint's data).
-    checked: list[tuple[StepSequenceRef, Sequence, np.ndarray]] = []
+    checked: list[tuple[StepSequenceRef, Sequence, np.ndarray, list[int]]] = []
     shape: tuple[int, int] | None = None
     for ref in refs:
         seq = Sequence(ref.path)
@@ -182,18 +182,17 @@ def build_prior_set(
             raise InvalidInputError(
                 ref.path, f"image size {seq.camera.shape} != {shape} of earlier sequences"
             )
-        checked.append((ref, seq, seq.true_poses))
-    total = sum(len(_frame_indices(len(seq), frame_step)) for _, seq, _ in checked)
+        checked.append((ref, seq, seq.true_poses, _frame_indices(len(seq), frame_step)))
+    total = sum(len(idx) for *_, idx in checked)
     h, w = shape if shape is not None else (0, 0)
     rgb_all = np.empty((total, h, w, 3), np.uint8)
     prior_all, target_all, true_all = (np.empty((total, h, w), np.float32) for _ in range(3))
     changed_all = np.empty((total, h, w), bool)
     sources: list[str] = []
     n = 0
-    for ref, seq, true_poses in checked:
+    for ref, seq, true_poses, idx in checked:
         mesh = phantom_step_mesh(ref.phantom_dir, max(ref.step - 1, 0))
         rc = MeshRaycaster(mesh.vertices, mesh.faces)
-        idx = _frame_indices(len(seq), frame_step)
         prior = rc.render_depths(seq.camera, seq.poses[idx])
         if target_pose == "true":
             reference = rc.render_depths(seq.camera, true_poses[idx])
