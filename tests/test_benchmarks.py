@@ -93,6 +93,23 @@ def test_bench_update_prints_fusion_ratio_and_update_fps_last() -> None:
     assert number(figures["fusion_ratio_vs_open3d"]) > 0
 
 
+def test_bench_dataset_prints_ratio_last_and_names_its_generator() -> None:
+    # The toy generator keeps this quick; without --phantom-cmd the benchmark runs sim
+    # dataset's own default (the anatomy generator), which it must say.
+    toy = f"{sys.executable} -m sim.synthetic"
+    pairs = run_bench(
+        "bench_dataset.py", "--seeds", "0", "--frames", "2", "--preop-frames", "2",
+        "--bites", "1", "--spp", "1", "--width", "64", "--height", "48", "--phantom-cmd", toy,
+    )  # fmt: skip
+    figures = check_contract(
+        pairs,
+        "dataset_vs_render_ratio",
+        ["cpu_simd", "phantom_cmd", "dataset_frames", "render_rgbd_fps", "dataset_fps"],
+    )
+    assert figures["phantom_cmd"] == toy
+    assert number(figures["dataset_frames"]) == 2 + 1 * 2  # the preop sweep and one step
+
+
 def test_bench_phantoms_prints_phantom_s_last() -> None:
     pairs = run_bench("bench_phantoms.py", "--seed", "0")
     figures = check_contract(pairs, "phantom_s", ["triangles_step0", "removed_mm3"])
