@@ -350,3 +350,22 @@ def test_seed_whose_airway_field_pinched_off_a_pocket_builds():
 
     anatomy = build_anatomy(sample_params(1233, {}), 1233)
     assert anatomy.n_voids == len(anatomy.cells)
+
+
+def _two_cubes(gap_mm: float) -> m3d.Manifold:
+    """Two unit cubes diagonally apart by ``gap_mm`` along x and y: touching along one
+    edge (each with its own copies of the edge's vertices) when the gap is 0."""
+    a = m3d.Manifold.cube((1.0, 1.0, 1.0))
+    b = m3d.Manifold.cube((1.0, 1.0, 1.0)).translate((1.0 + gap_mm, 1.0 + gap_mm, 0.0))
+    return m3d.Manifold.compose([a, b])
+
+
+@pytest.mark.parametrize("gap_mm", [0.0, 0.5])
+def test_pinched_finds_an_edge_of_four_faces_as_trimesh_does(gap_mm):
+    from phantoms.procedures import _pinched
+
+    v, f = arrays_from_manifold(_two_cubes(gap_mm))
+    # independent count: trimesh merges the coincident vertices, then counts edge uses
+    merged = trimesh.Trimesh(v, f, process=True)
+    counts = np.unique(merged.edges_sorted, axis=0, return_counts=True)[1]
+    assert _pinched(_two_cubes(gap_mm)) == bool((counts > 2).any()) == (gap_mm == 0.0)
