@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import SupportsFloat, SupportsInt
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -251,6 +250,10 @@ class Camera:
             y = (v - self.cy) / self.fy
         else:
             # The image is distorted: undo the lens model per pixel (iteratively, to ~1e-9).
+            # Imported here: cv2 takes ~1 s to import, and the phantom generator, which
+            # imports this module for its rigid geometry only, runs once per dataset seed.
+            import cv2  # noqa: PLC0415
+
             pts = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :]
             criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
             und = cv2.undistortPoints(pts, self.K, self.dist, None, None, None, criteria)
