@@ -73,6 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     gen.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
     gen.add_argument(
+        "--seeds",
+        help="generate several phantoms in one run (one start-up for all), e.g. 0-3 or 1,4,9: "
+        "--out must hold {seed}, replaced by each seed; 'phantom written to DIR' is printed "
+        "on stderr as each folder is complete",
+    )
+    gen.add_argument(
         "--bites",
         type=int,
         default=5,
@@ -84,7 +90,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="uncinectomy",
         help="uncinectomy (default), ethmoidectomy or bites; see docs/phantoms.md",
     )
-    gen.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
+    gen.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="output folder (replaced atomically); with --seeds a pattern holding {seed}",
+    )
     gen.add_argument(
         "--target",
         default="uncinate",
@@ -124,6 +135,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=(2.0, 5.0),
         metavar=("MIN", "MAX"),
         help="cutter jaw sizes, mm",
+    )
+    gen.add_argument(
+        "--no-ct",
+        dest="ct",
+        action="store_false",
+        help="write the meshes and phantom.json only, no CT volumes (all that rendering "
+        "needs, in about half the time; phantom.json's ct is null, its steps have no ct_label "
+        "or ct_hu)",
     )
     gen.add_argument(
         "--tet",
@@ -206,8 +225,27 @@ def _load_plan(path: Path):
     return steps
 
 
+def _seeds_and_outs(args: argparse.Namespace) -> list[tuple[int, Path]]:
+    """(seed, output folder) of each phantom to generate: ``--seed``, or every seed of
+    ``--seeds`` with ``{seed}`` in ``--out`` replaced."""
+    from chisel.core.config import seed_list  # noqa: PLC0415
+
+    if args.seeds is None:
+        return [(args.seed, args.out)]
+    try:
+        seeds = seed_list(args.seeds)
+    except ValueError as exc:
+        raise ParameterRangeError("--seeds", str(exc)) from None
+    if "{seed}" not in str(args.out):
+        raise ParameterRangeError(
+            "--out", f"with --seeds the output must hold {{seed}}, got {str(args.out)!r}"
+        )
+    return [(s, Path(str(args.out).replace("{seed}", str(s)))) for s in seeds]
+
+
 def _cmd_generate(args: argparse.Namespace) -> int:
     from phantoms.generate import generate
+    from phantoms.io import check_output_dir
     from phantoms.params import PhantomConfig
     from phantoms.procedures import PROCEDURES, STEP_RANGES
 
@@ -219,23 +257,35 @@ def _cmd_generate(args: argparse.Namespace) -> int:
                 f"--plan {args.plan}",
                 f"{len(bites)} steps; procedure {args.procedure} takes {lo}-{hi}",
             )
-    cfg = PhantomConfig(
-        seed=args.seed,
-        procedure=args.procedure,
-        n_bites=len(bites) if bites else args.bites,
-        target=args.target,
-        bite_size_mm=tuple(args.bite_size_mm),
-        spacing_mm=args.spacing_mm,
-        noise_hu=args.noise_hu,
-        mucosa_mm=args.mucosa_mm,
-        roi_margin_mm=args.roi_margin_mm,
-        mesh_edge_mm=args.mesh_edge_mm,
-        tet=args.tet,
-        tet_edge_mm=args.tet_edge_mm,
-        overrides=dict(args.param),
-    )
-    out = generate(cfg, args.out, bites=bites, show_progress=True, plan_source=f"{args.plan} bite")
-    sys.stderr.write(f"phantom written to {out}\n")
+    # every config and output folder is checked before the first phantom is built
+    runs = []
+    for seed, out in _seeds_and_outs(args):
+        cfg = PhantomConfig(
+            seed=seed,
+            procedure=args.procedure,
+            n_bites=len(bites) if bites else args.bites,
+            target=args.target,
+            bite_size_mm=tuple(args.bite_size_mm),
+            spacing_mm=args.spacing_mm,
+            noise_hu=args.noise_hu,
+            mucosa_mm=args.mucosa_mm,
+            roi_margin_mm=args.roi_margin_mm,
+            mesh_edge_mm=args.mesh_edge_mm,
+            ct=args.ct,
+            tet=args.tet,
+            tet_edge_mm=args.tet_edge_mm,
+            overrides=dict(args.param),
+        )
+        check_output_dir(out)
+        runs.append((cfg, out))
+    for cfg, out in runs:
+        written = generate(
+            cfg, out, bites=bites, show_progress=True, plan_source=f"{args.plan} bite"
+        )
+        # sim dataset waits for this line (one per seed) to render a phantom while the
+        # next one is generated
+        sys.stderr.write(f"phantom written to {written}\n")
+        sys.stderr.flush()
     return 0
 
 

@@ -79,10 +79,10 @@ class Step:
     """(F, 3) int64, counter-clockwise seen from outside the tissue."""
     volume_mm3: float
     removed_volume_mm3: float
-    label: np.ndarray
-    """(nx, ny, nz) uint8: 0 air, 1 soft tissue, 2 bone."""
-    hu: np.ndarray
-    """(nx, ny, nz) int16 Hounsfield-like units."""
+    label: np.ndarray | None
+    """(nx, ny, nz) uint8: 0 air, 1 soft tissue, 2 bone; None without CT (``config.ct``)."""
+    hu: np.ndarray | None
+    """(nx, ny, nz) int16 Hounsfield-like units; None without CT."""
     cutter_vertices_mm: np.ndarray | None = None
     cutter_faces: np.ndarray | None = None
     cut_faces: np.ndarray | None = None
@@ -219,7 +219,7 @@ def _voxelise_steps(
     (N, 3) mm, found on the preoperative surface.
 
     The signed distance is computed once on the whole grid for the preop surface, then
-    updated inside each cutter's box only."""
+    updated inside each cutter's box only; not at all without CT (``config.ct``)."""
     clip = clip_distance_mm(config.spacing_mm, config.mucosa_mm)
     grid = grid_for_block(
         anatomy.block_min_mm,
@@ -227,7 +227,7 @@ def _voxelise_steps(
         config.spacing_mm,
         clip[0] + 2 * config.spacing_mm,
     )
-    noise = ct_noise(grid.shape, config.noise_hu, config.seed)
+    noise = ct_noise(grid.shape, config.noise_hu, config.seed) if config.ct else None
     steps: list[Step] = []
     sd: np.ndarray | None = None
     path: np.ndarray | None = None
@@ -236,7 +236,8 @@ def _voxelise_steps(
         v, f = arrays_from_manifold(solid)
         surface = SurfaceDistance(v, f)
         if cut is None:
-            sd = surface.signed_distance_grid(grid.points(), clip, grid.spacing_mm)
+            if config.ct:
+                sd = surface.signed_distance_grid(grid.points(), clip, grid.spacing_mm)
             path = airway_path(
                 surface,
                 np.asarray(anatomy.nostril_mm),
@@ -245,8 +246,7 @@ def _voxelise_steps(
                 target,
             )
             note("airway path")
-        else:
-            assert sd is not None  # step 0 (preop) comes first
+        elif sd is not None:  # with CT; step 0 (preop) came first
             box = cut.cutter.bounding_box()
             sd = update_sd(sd, grid, surface, np.asarray(box[:3]), np.asarray(box[3:]), clip)
         name = "preop" if cut is None else f"{step_name}_{k}"
@@ -263,13 +263,14 @@ def _step(
     solid: m3d.Manifold,
     v: np.ndarray,
     f: np.ndarray,
-    sd: np.ndarray,
+    sd: np.ndarray | None,
     noise: np.ndarray | None,
     cut: StepCut | None,
     fragment: Fragment | None,
 ) -> Step:
     """One step from its surface ``v, f`` (of ``solid``) and the grid's signed distance
-    ``sd`` to it; ``cut`` and ``fragment`` are None for the preoperative step."""
+    ``sd`` to it (None: no CT); ``cut`` and ``fragment`` are None for the preoperative
+    step."""
     cv = cf = None
     if cut is not None:
         cv, cf = arrays_from_manifold(cut.cutter)
@@ -284,8 +285,8 @@ def _step(
         faces=f,
         volume_mm3=float(solid.volume()),
         removed_volume_mm3=0.0 if cut is None else float(cut.removed_volume_mm3),
-        label=labels_from_sd(sd, config.mucosa_mm),
-        hu=hu_from_sd(sd, config.spacing_mm, config.mucosa_mm, noise),
+        label=None if sd is None else labels_from_sd(sd, config.mucosa_mm),
+        hu=None if sd is None else hu_from_sd(sd, config.spacing_mm, config.mucosa_mm, noise),
         cutter_vertices_mm=cv,
         cutter_faces=cf,
         cut_faces=np.zeros(len(f), bool) if cut is None else cut.cut_faces,
@@ -302,8 +303,9 @@ def manifest(ph: Phantom) -> dict:
         entry: dict = {"step": k, "name": st.name, "mesh": f"meshes/step_{k:02d}.ply"}
         if st.cutter_vertices_mm is not None:
             entry["cutter_mesh"] = f"meshes/cutter_{k:02d}.ply"
-        entry["ct_label"] = f"ct/step_{k:02d}_label.nii.gz"
-        entry["ct_hu"] = f"ct/step_{k:02d}_hu.nii.gz"
+        if st.label is not None:
+            entry["ct_label"] = f"ct/step_{k:02d}_label.nii.gz"
+            entry["ct_hu"] = f"ct/step_{k:02d}_hu.nii.gz"
         if st.tets is not None:
             entry["tet_mesh"] = f"tet/step_{k:02d}.vtu"
         entry["cut_faces"] = f"meshes/step_{k:02d}_cut_faces.npy"
@@ -354,7 +356,10 @@ def manifest(ph: Phantom) -> dict:
                 "thickness_mm": ph.target.thickness_mm,
             },
             "airway_path_mm": ph.airway_path_mm.tolist(),
-            "ct": {
+            # without CT volumes (config.ct False) the block is null: no grid to describe
+            "ct": None
+            if not ph.config.ct
+            else {
                 "spacing_mm": ph.grid.spacing_mm,
                 "shape": list(ph.grid.shape),
                 "T_world_from_voxel": ph.grid.T_world_from_voxel.tolist(),
@@ -395,14 +400,15 @@ def write_phantom(
                     tmp / f"meshes/cutter_{k:02d}.ply",
                     ply_bytes(st.cutter_vertices_mm, st.cutter_faces),
                 )
-            atomic_write_bytes(
-                tmp / f"ct/step_{k:02d}_label.nii.gz",
-                nifti_gz_bytes(st.label, T, "label 0 air 1 soft 2 bone"),
-            )
-            atomic_write_bytes(
-                tmp / f"ct/step_{k:02d}_hu.nii.gz",
-                nifti_gz_bytes(st.hu, T, "Hounsfield-like units"),
-            )
+            if st.label is not None and st.hu is not None:
+                atomic_write_bytes(
+                    tmp / f"ct/step_{k:02d}_label.nii.gz",
+                    nifti_gz_bytes(st.label, T, "label 0 air 1 soft 2 bone"),
+                )
+                atomic_write_bytes(
+                    tmp / f"ct/step_{k:02d}_hu.nii.gz",
+                    nifti_gz_bytes(st.hu, T, "Hounsfield-like units"),
+                )
             if st.tets is not None:
                 from phantoms.tet import vtu_bytes
 

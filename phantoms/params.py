@@ -198,6 +198,10 @@ class PhantomConfig:
     """Margin added around the removed tissue's bounding box for the change ROI, mm (0-20)."""
     mesh_edge_mm: float = 0.5
     """Target edge length of the tissue surface, mm (0.3-2.0; coarser = faster, for tests)."""
+    ct: bool = True
+    """Write the CT volumes (label and HU NIfTI per step). False writes the meshes and the
+    manifest only: all that rendering needs, in about half the time (``sim dataset``'s
+    default)."""
     tet: bool = False
     """Also export a tetrahedral mesh per step (pytetwild; slow)."""
     tet_edge_mm: float = 3.0
@@ -231,8 +235,11 @@ class PhantomConfig:
         _check_range("roi_margin_mm", self.roi_margin_mm, 0.0, 20.0)
         _check_range("mesh_edge_mm", self.mesh_edge_mm, 0.3, 2.0)
         _check_range("tet_edge_mm", self.tet_edge_mm, 0.5, 10.0)
-        if not isinstance(self.tet, bool):
-            raise ParameterRangeError("tet", f"expected True or False, got {self.tet!r}")
+        for name in ("ct", "tet"):
+            if not isinstance(getattr(self, name), bool):
+                raise ParameterRangeError(
+                    name, f"expected True or False, got {getattr(self, name)!r}"
+                )
         if self.mucosa_mm < 1.5 * self.spacing_mm:
             # Bone must stay a voxel away from the surface so the -480 HU iso-surface is
             # exact (docs/phantoms.md, "CT volumes").

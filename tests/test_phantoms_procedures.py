@@ -143,6 +143,24 @@ def test_same_seed_gives_the_same_bytes(runs, tmp_path):
     assert digest(again) == digest(runs["uncinectomy"])
 
 
+def test_no_ct_writes_the_same_meshes_and_no_volumes(runs, tmp_path):
+    out = tmp_path / "no_ct"
+    assert main(["generate", *RUNS["uncinectomy"], "--out", str(out), *COARSE, "--no-ct"]) == 0
+    full = runs["uncinectomy"]
+    m, m_full = _manifest(out), _manifest(full)
+    assert m["ct"] is None and not (out / "ct").exists()
+    assert all("ct_label" not in s and "ct_hu" not in s for s in m["steps"])
+    assert all("ct_label" in s for s in m_full["steps"])
+    meshes = sorted(p.relative_to(full) for p in (full / "meshes").iterdir())
+    assert sorted(p.relative_to(out) for p in (out / "meshes").iterdir()) == meshes
+    for rel in meshes:
+        assert (out / rel).read_bytes() == (full / rel).read_bytes(), rel
+    skip = {"ct", "steps", "config"}
+    assert {k: v for k, v in m.items() if k not in skip} == {
+        k: v for k, v in m_full.items() if k not in skip
+    }
+
+
 def test_uncinectomy_removes_the_uncinate_from_below_upward(runs):
     m = _manifest(runs["uncinectomy"])
     steps = m["steps"][1:]
