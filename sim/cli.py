@@ -137,6 +137,7 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         command=["python", "-m", "sim", *args.argv],
         write_index=not args.no_index,
+        phantom_ct=args.phantom_ct,
     )
     logging.getLogger("sim").info(
         "dataset: %d sequences, %d frames in %s", ds["num_sequences"], ds["num_frames"], args.out
@@ -229,6 +230,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     d.add_argument(
         "--phantom-args", default="", help="extra arguments for the generator, one string"
+    )
+    d.add_argument(
+        "--phantom-ct",
+        action="store_true",
+        help="the default generator also writes each phantom's CT volumes (NIfTI); without it "
+        "it runs with --no-ct, as rendering needs the meshes only",
     )
     d.add_argument("--resume", action="store_true", help="keep seeds already rendered in DIR")
     d.add_argument(

@@ -26,6 +26,7 @@ import shlex
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from chisel.core.atomic import atomic_write_text
+from chisel.core.config import seed_list
 from chisel.io.manifest import read_json_manifest
 from sim.config import SimConfig, config_to_dict
 from sim.errors import ConfigError, PhantomError, SimError
@@ -125,37 +127,13 @@ def dataset_card(
     }
 
 
-MAX_SEEDS = 100_000
-"""Most phantom seeds one ``--seeds`` may name (a typo like 0-999999999999 filled memory)."""
-
-
 def parse_seeds(text: str) -> list[int]:
-    """``"100-119"``, ``"1,4,9"`` or ``"7"`` (and mixtures like ``"1-3,8"``) -> sorted seeds."""
-    seeds: set[int] = set()
+    """``"100-119"``, ``"1,4,9"`` or ``"7"`` (and mixtures like ``"1-3,8"``) -> sorted seeds;
+    :class:`ConfigError` naming ``--seeds`` otherwise (:func:`chisel.core.config.seed_list`)."""
     try:
-        for part in str(text).split(","):
-            part = part.strip()
-            if not part:
-                continue
-            if "-" in part:
-                a, b = (int(x) for x in part.split("-", 1))
-                if b < a:
-                    raise ValueError(f"range {part} is reversed")
-                if b - a + 1 + len(seeds) > MAX_SEEDS:
-                    raise ConfigError(
-                        "--seeds",
-                        f"{part!r} names {b - a + 1} seeds, over the limit of {MAX_SEEDS}",
-                    )
-                seeds.update(range(a, b + 1))
-            else:
-                seeds.add(int(part))
+        return seed_list(text)
     except ValueError as exc:
-        raise ConfigError(
-            "--seeds", f"expected e.g. '100-119' or '1,4,9', got {text!r} ({exc})"
-        ) from None
-    if not seeds or min(seeds) < 0:
-        raise ConfigError("--seeds", f"expected one or more seeds >= 0, got {text!r}")
-    return sorted(seeds)
+        raise ConfigError("--seeds", str(exc)) from None
 
 
 def _split(option: str, text: str) -> list[str]:
@@ -167,32 +145,45 @@ def _split(option: str, text: str) -> list[str]:
 
 class PhantomJob:
     """One run of the phantom generator CLI in a subprocess, started at once and awaited
-    with :meth:`wait`, so that :func:`build_dataset` generates the next seed's phantom
-    while it renders this one (the generator is mostly one core of Python; the renderer
-    leaves time on the other). Output goes to a temporary file, not a pipe, so that a
-    chatty generator cannot block on a full pipe while nobody reads it."""
+    with :meth:`wait`, so that :func:`build_dataset` renders one phantom while the next
+    is generated (the generator is mostly one core of Python; the renderer leaves time on
+    the other). Output goes to a temporary file, not a pipe, so that a chatty generator
+    cannot block on a full pipe while nobody reads it.
+
+    ``out_pattern`` names each seed's folder with ``{seed}``. A command of one's own (``phantom_cmd``)
+    gets one seed per run (the CLI contract ``--seed S --bites N --out DIR``). The
+    default generator gets every seed in one run (``--seeds`` and an ``--out`` pattern:
+    its start-up, mostly imports, was half of a phantom's time) and says ``phantom
+    written to DIR`` as each folder is complete.
+    """
 
     def __init__(
         self,
-        seed: int,
+        seeds: list[int],
+        out_pattern: str,
         bites: int,
-        out_dir: Path,
         phantom_cmd: str | None = None,
         extra_args: str = "",
+        with_ct: bool = False,
     ) -> None:
-        base = (
-            _split("--phantom-cmd", phantom_cmd)
-            if phantom_cmd
-            else [sys.executable, "-m", "phantoms", "generate"]
-        )
-        if not base:
-            raise ConfigError("--phantom-cmd", "empty generator command")
-        self.out_dir = out_dir
-        self.cmd = (
-            base
-            + ["--seed", str(seed), "--bites", str(bites), "--out", str(out_dir)]
-            + _split("--phantom-args", extra_args)
-        )
+        if "{seed}" not in out_pattern or not seeds:
+            raise ValueError(f"expected seeds and a folder pattern with {{seed}}: {out_pattern!r}")
+        out_dirs = {s: Path(out_pattern.replace("{seed}", str(s))) for s in seeds}
+        if phantom_cmd:
+            base = _split("--phantom-cmd", phantom_cmd)
+            if not base:
+                raise ConfigError("--phantom-cmd", "empty generator command")
+            if len(seeds) != 1:
+                raise ValueError("a generator command of one's own runs one seed at a time")
+            where = ["--seed", str(seeds[0]), "--out", str(out_dirs[seeds[0]])]
+        else:
+            # Rendering needs the meshes only: no CT volumes (about half the generator's
+            # time once started) unless asked.
+            base = [sys.executable, "-m", "phantoms", "generate"]
+            base += [] if with_ct else ["--no-ct"]
+            where = ["--seeds", ",".join(map(str, seeds)), "--out", out_pattern]
+        self.out_dirs = out_dirs
+        self.cmd = base + ["--bites", str(bites), *where] + _split("--phantom-args", extra_args)
         self._log = tempfile.TemporaryFile(mode="w+t")
         try:
             self._proc = subprocess.Popen(
@@ -201,28 +192,36 @@ class PhantomJob:
         except OSError as exc:  # the program itself is missing or not executable
             self._log.close()
             raise PhantomError(
-                out_dir, f"cannot run the phantom generator {base[0]!r}: {exc.strerror or exc}"
+                out_dirs[seeds[0]],
+                f"cannot run the phantom generator {base[0]!r}: {exc.strerror or exc}",
             ) from None
+        self._one_seed = bool(phantom_cmd)
 
-    def wait(self) -> Path:
-        """The phantom folder once the generator has finished; :class:`PhantomError` with
-        the command and the last lines of its output when it failed."""
-        try:
-            code = self._proc.wait()
-            self._log.seek(0)
-            output = self._log.read()
-        finally:
-            self._log.close()
-        if code != 0 or not (self.out_dir / "phantom.json").is_file():
-            tail = " | ".join(output.strip().splitlines()[-5:])
-            raise PhantomError(
-                self.out_dir,
-                f"phantom generator failed (exit {code}): {shlex.join(self.cmd)}: {tail}",
-            )
-        return self.out_dir
+    def _output(self) -> str:
+        self._log.seek(0)
+        return self._log.read()
+
+    def wait(self, seed: int) -> Path:
+        """``seed``'s phantom folder once it is complete; :class:`PhantomError` with the
+        command and the last lines of its output when the generator failed first."""
+        out_dir = self.out_dirs[seed]
+        done = f"phantom written to {out_dir}\n"
+        while True:
+            code = self._proc.wait() if self._one_seed else self._proc.poll()
+            # the output is read after the exit status: a generator prints before it exits
+            reported = (self._one_seed and code == 0) or done in self._output()
+            if reported and (out_dir / "phantom.json").is_file():
+                return out_dir
+            if code is not None:
+                tail = " | ".join(self._output().strip().splitlines()[-5:])
+                raise PhantomError(
+                    out_dir,
+                    f"phantom generator failed (exit {code}): {shlex.join(self.cmd)}: {tail}",
+                )
+            time.sleep(0.05)
 
     def cancel(self) -> None:
-        """Stop a generator that is still running (the build failed elsewhere)."""
+        """Stop a generator that is still running (the build failed or finished)."""
         if self._proc.poll() is None:
             self._proc.kill()
             self._proc.wait()
@@ -304,8 +303,13 @@ def build_dataset(
     progress: bool = True,
     command: list[str] | None = None,
     write_index: bool = True,
+    phantom_ct: bool = False,
 ) -> dict[str, Any]:
     """Generate and render every seed; write and return ``dataset.json``'s content.
+
+    phantom_ct : the default generator also writes each phantom's CT volumes (rendering
+    does not need them; ``python -m phantoms generate --no-ct`` otherwise). Ignored with
+    ``phantom_cmd``.
 
     write_index : False renders the seeds only (``seed_S/``, ``phantoms/seed_S/``) and
     writes neither ``dataset.json`` nor the card: one job per seed on a cluster, then one
@@ -335,10 +339,17 @@ def build_dataset(
         for s in seeds
     }
 
-    def phantom_dir(seed: int) -> Path:
-        return out / "phantoms" / f"seed_{seed}"
+    if "{seed}" in str(out):
+        raise ConfigError(
+            out, "the dataset folder's path holds '{seed}', the phantom folders' pattern"
+        )
+    pattern = str(out / "phantoms" / "seed_{seed}")
 
-    # Seeds whose phantom must be generated, in order; one generator runs ahead.
+    def phantom_dir(seed: int) -> Path:
+        return Path(pattern.replace("{seed}", str(seed)))
+
+    # Seeds whose phantom must be generated, in order. The default generator makes them
+    # all in one run, ahead of the renders; a command of one's own, one seed ahead.
     to_generate = [
         s
         for s in seeds
@@ -347,9 +358,12 @@ def build_dataset(
     jobs: dict[int, PhantomJob] = {}
 
     def start_next() -> None:
-        if to_generate and len(jobs) < 1:
-            s = to_generate.pop(0)
-            jobs[s] = PhantomJob(s, bites, phantom_dir(s), phantom_cmd, phantom_args)
+        if not to_generate or jobs:
+            return
+        batch = to_generate[:1] if phantom_cmd else list(to_generate)
+        del to_generate[: len(batch)]
+        job = PhantomJob(batch, pattern, bites, phantom_cmd, phantom_args, with_ct=phantom_ct)
+        jobs.update(dict.fromkeys(batch, job))
 
     try:
         for seed in tqdm(seeds, desc="dataset", unit="phantom", disable=not progress):
@@ -358,7 +372,12 @@ def build_dataset(
             if header is None:
                 start_next()
                 if seed in jobs:
-                    jobs.pop(seed).wait()
+                    job = jobs.pop(seed)
+                    try:
+                        job.wait(seed)
+                    finally:
+                        if job not in jobs.values():
+                            job.cancel()  # its last seed: close its log
                 start_next()  # the next seed's phantom while this one renders
                 header = render_phantom(
                     phantom_dir(seed),
@@ -383,7 +402,7 @@ def build_dataset(
                     }
                 )
     finally:
-        for job in jobs.values():
+        for job in set(jobs.values()):
             job.cancel()
     dataset = {
         "format": DATASET_FORMAT,

@@ -331,7 +331,8 @@ def test_a_morphology_kernel_wider_than_any_image_is_refused() -> None:
 
 
 def test_a_seed_range_of_a_trillion_is_refused_before_it_fills_memory() -> None:
-    from sim.dataset import MAX_SEEDS, parse_seeds
+    from chisel.core.config import MAX_SEEDS
+    from sim.dataset import parse_seeds
     from sim.errors import ConfigError
 
     with pytest.raises(ConfigError, match="over the limit") as info:

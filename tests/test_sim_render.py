@@ -599,3 +599,52 @@ def test_end_to_end_with_real_phantom_generator(tmp_path: Path) -> None:
         # The camera looks at the target from the airway: it is in front, within 20 mm.
         p = np.linalg.inv(seq.true_poses[i]) @ np.append(phantom["target"]["center_mm"], 1.0)
         assert 0 < p[2] < 20.0
+
+
+def test_dataset_runs_the_default_generator_once_without_ct_unless_asked(monkeypatch, tmp_path):
+    import sim.dataset
+    from sim.dataset import PhantomJob
+
+    commands: list[list[str]] = []
+
+    class Recorder:  # stands in for the generator's process
+        def __init__(self, cmd, **_kwargs):
+            commands.append(cmd)
+
+        def poll(self) -> int:
+            return 0
+
+    monkeypatch.setattr(sim.dataset.subprocess, "Popen", Recorder)
+    pattern = str(tmp_path / "seed_{seed}")
+    PhantomJob([1, 2], pattern, 2).cancel()
+    PhantomJob([1], pattern, 2, with_ct=True).cancel()
+    PhantomJob([3], pattern, 2, phantom_cmd="my-gen --fast", with_ct=False).cancel()
+    with pytest.raises(ValueError, match="one seed at a time"):
+        PhantomJob([1, 2], pattern, 2, phantom_cmd="my-gen")
+    default, with_ct, custom = commands
+    assert default[1:4] == ["-m", "phantoms", "generate"] and "--no-ct" in default
+    assert default[default.index("--seeds") + 1] == "1,2"
+    assert default[default.index("--out") + 1] == pattern
+    assert with_ct[1:4] == ["-m", "phantoms", "generate"] and "--no-ct" not in with_ct
+    assert custom[:2] == ["my-gen", "--fast"] and "--no-ct" not in custom
+    assert custom[custom.index("--out") + 1] == str(tmp_path / "seed_3")
+
+
+def test_dataset_generates_every_seed_in_one_generator_run(tmp_path, tiny_sim_config):
+    from sim.errors import PhantomError
+
+    coarse = "--mesh-edge-mm 1.0 --spacing-mm 1.0 --mucosa-mm 1.5"
+    out = tmp_path / "ds"
+    ds = build_dataset(out, [1, 2], tiny_sim_config, bites=1, phantom_args=coarse, progress=False)
+    assert [e["phantom_seed"] for e in ds["sequences"]] == [1, 1, 2, 2]
+    for seed in (1, 2):
+        manifest = json.loads((out / f"phantoms/seed_{seed}/phantom.json").read_text())
+        assert manifest["seed"] == seed and manifest["ct"] is None
+        assert not (out / f"phantoms/seed_{seed}/ct").exists()
+    # a generator that fails names the seed's folder and says why, and keeps what was there
+    with pytest.raises(PhantomError, match="nose_mm") as info:
+        build_dataset(
+            tmp_path / "bad", [3, 4], tiny_sim_config, bites=1,
+            phantom_args=f"{coarse} --param nose_mm=3", progress=False,
+        )  # fmt: skip
+    assert "seed_3" in str(info.value)

@@ -414,3 +414,36 @@ def config_from_args(
         raise
     except (TypeError, ValueError) as exc:
         raise error("options", str(exc)) from None
+
+
+MAX_SEEDS = 100_000
+"""Most seeds one seed list may name (a typo like 0-999999999999 filled memory)."""
+
+
+def seed_list(text: str) -> list[int]:
+    """``"100-119"``, ``"1,4,9"`` or ``"7"`` (and mixtures like ``"1-3,8"``) -> sorted,
+    distinct seeds >= 0; ValueError with the reason otherwise (callers name the option)."""
+    seeds: set[int] = set()
+    try:
+        for part in str(text).split(","):
+            part = part.strip()
+            if not part:
+                continue
+            if "-" in part:
+                a, b = (int(x) for x in part.split("-", 1))
+                if b < a:
+                    raise ValueError(f"range {part} is reversed")
+                if b - a + 1 + len(seeds) > MAX_SEEDS:
+                    raise OverflowError(
+                        f"{part!r} names {b - a + 1} seeds, over the limit of {MAX_SEEDS}"
+                    )
+                seeds.update(range(a, b + 1))
+            else:
+                seeds.add(int(part))
+    except OverflowError as exc:
+        raise ValueError(str(exc)) from None
+    except ValueError as exc:
+        raise ValueError(f"expected e.g. '100-119' or '1,4,9', got {text!r} ({exc})") from None
+    if not seeds or min(seeds) < 0:
+        raise ValueError(f"expected one or more seeds >= 0, got {text!r}")
+    return sorted(seeds)
