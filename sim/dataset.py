@@ -20,6 +20,7 @@ seeds whose render folder is complete are kept.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import logging
 import shlex
@@ -35,6 +36,7 @@ from tqdm import tqdm
 
 from chisel.core.atomic import atomic_write_text
 from chisel.core.config import seed_list
+from chisel.core.mitsuba_variant import load_mitsuba
 from chisel.io.manifest import read_json_manifest
 from sim.config import SimConfig, config_to_dict
 from sim.errors import ConfigError, PhantomError, SimError
@@ -366,6 +368,12 @@ def build_dataset(
         jobs.update(dict.fromkeys(batch, job))
 
     try:
+        start_next()
+        if jobs:
+            # While the first phantom is made (nothing else to overlap it): the renderer's
+            # variant probe and the path planner's Open3D import, ~2 s paid once anyway.
+            load_mitsuba(cfg.variant)
+            importlib.import_module("open3d")
         for seed in tqdm(seeds, desc="dataset", unit="phantom", disable=not progress):
             render_dir = out / f"seed_{seed}"
             header = finished[seed]

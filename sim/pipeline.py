@@ -43,7 +43,7 @@ from sim.effects import FrameEffects, smear_mask, smear_schedule
 from sim.errors import PhantomError
 from sim.paths import PathTarget, check_clearance, eval_poses, intraop_path, preop_sweep
 from sim.phantom import Phantom, load_mesh, load_phantom
-from sim.render import MeshRenderer
+from sim.render import MeshRenderer, SharedMaterials
 from sim.tools import ToolSet, ToolTrack, plan_tool_track, tool_set
 from sim.tracking import tracked_poses
 
@@ -379,6 +379,7 @@ def render_phantom(
         "config": config_to_dict(cfg),
     }
     out = Path(out_dir)
+    shared = SharedMaterials()  # one tissue BSDF and packed texture for every step
     with atomic_dir(out, "render.json") as tmp:
         (tmp / "eval").mkdir()
         for k, mesh in enumerate(meshes):
@@ -395,6 +396,7 @@ def render_phantom(
                 cut_texture=cut_texture,
                 tools=step_tools,
                 blood_weight=films[k],
+                shared=shared,
             )
             for p in todo:
                 meta = {

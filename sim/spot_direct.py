@@ -218,6 +218,12 @@ class PackedTexture:
         return out * (1.0 / TEXEL_LEVELS)
 
 
+def _packed(mi: ModuleType, texture: TextureVolume | PackedTexture) -> PackedTexture:
+    """A volume packed for the kernel; one packed already (shared by the renderers of a
+    phantom's steps) as it is."""
+    return texture if isinstance(texture, PackedTexture) else PackedTexture(mi, texture)
+
+
 class SpotDirectIntegrator:
     """One-bounce direct lighting of a loaded Mitsuba scene by a spot light at the scope tip.
 
@@ -227,7 +233,8 @@ class SpotDirectIntegrator:
     used : (H, W) bool, the pixels to render (the field stop); the others stay 0.
     light : the spot light (position in the camera frame, intensity, cone).
     spp : samples per pixel (4x4-style stratified when a perfect square, else uniform).
-    texture : the tissue's base colour volume (the scene's principled BSDF uses the same).
+    texture : the tissue's base colour volume (the scene's principled BSDF uses the same),
+        or that volume already packed (:class:`PackedTexture`; so is ``cut_texture``).
     roughness, specular : the principled BSDF's parameters (``sim.config.AppearanceConfig``).
     tissue : the tissue mesh in ``scene`` (default: the scene's only shape).
     cut_faces : optional (F,) bool per tissue face, True = a cut face, shaded with
@@ -248,12 +255,12 @@ class SpotDirectIntegrator:
         used: np.ndarray,
         light: LightConfig,
         spp: int,
-        texture: TextureVolume,
+        texture: TextureVolume | PackedTexture,
         roughness: float,
         specular: float,
         tissue: Any | None = None,
         cut_faces: np.ndarray | None = None,
-        cut_texture: TextureVolume | None = None,
+        cut_texture: TextureVolume | PackedTexture | None = None,
         blood_weight: np.ndarray | None = None,
         blood: BloodConfig | None = None,
         tools: tuple[Any, ...] = (),
@@ -290,7 +297,7 @@ class SpotDirectIntegrator:
                     f"{tissue.face_count()} faces"
                 )
             self._cut = mi.UInt32(np.asarray(cut_faces, dtype=bool).astype(np.uint32))
-            self.cut_texture = PackedTexture(mi, cut_texture)
+            self.cut_texture = _packed(mi, cut_texture)
         self._blood = None
         if blood_weight is not None and np.any(blood_weight):
             if blood is None or len(blood_weight) != tissue.face_count():
@@ -334,7 +341,7 @@ class SpotDirectIntegrator:
         # down to 0 at the cutoff (spot.cpp ``falloff_curve``).
         width = math.radians(light.cutoff_deg - light.beam_width_deg)
         self._inv_transition = 1.0 / width if width > 0 else 0.0
-        self.texture = PackedTexture(mi, texture)
+        self.texture = _packed(mi, texture)
         self.roughness = float(roughness)
         # principled.cpp: eta from ``specular`` when no ``eta`` is given.
         self.eta = 2.0 / (1.0 - math.sqrt(0.08 * float(specular))) - 1.0

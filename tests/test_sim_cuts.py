@@ -20,7 +20,7 @@ from sim.config import SimConfig, replace_in
 from sim.errors import PhantomError
 from sim.phantom import load_mesh, load_phantom
 from sim.pipeline import load_cut_faces
-from sim.render import MeshRenderer
+from sim.render import MeshRenderer, SharedMaterials
 from sim.spot_direct import pixel_ray_frames
 from sim.synthetic import CHAMBER_CENTER_MM, write_toy_phantom
 
@@ -123,3 +123,28 @@ def test_without_labels_one_material(setup) -> None:
     assert not np.any(_classes(plain.render_radiance(T, seed=3)) >= 2)
     with pytest.raises(ValueError, match="cut-face labels"):
         MeshRenderer(mesh, cfg, texture_volume(box, cfg.appearance, 0), cut_faces=labels[:-1])
+
+
+def test_renderers_sharing_materials_render_the_same_bytes(setup) -> None:
+    # A phantom's renderers share the tissue BSDF and packed textures (sim.pipeline):
+    # step 2 rendered after step 1 built them equals step 2 rendered on its own.
+    phantom, mesh, labels, alone, T = setup
+    cfg = alone.cfg
+    box = np.stack([mesh.bounds[0] - 1, mesh.bounds[1] + 1])
+    mucosa = texture_volume(box, cfg.appearance, 0)
+    cut_look = replace_in(cfg, **{"appearance.albedo_rgb": [0.5, 0.0, 0.5]}).appearance
+    cut = texture_volume(box, cut_look, 0)
+    shared = SharedMaterials()
+    step1 = load_mesh(phantom.steps[1].mesh_path)
+    labels1 = load_cut_faces(phantom, 1, len(step1.faces))
+    first = MeshRenderer(step1, cfg, mucosa, cut_faces=labels1, cut_texture=cut, shared=shared)
+    second = MeshRenderer(mesh, cfg, mucosa, cut_faces=labels, cut_texture=cut, shared=shared)
+    assert first._direct is not None and second._direct is not None
+    assert second._direct.texture is first._direct.texture  # shared, not built again
+    assert second.mesh.bsdf() is first.mesh.bsdf()
+    for render in ("render_radiance", "render_radiance_reference"):
+        a = getattr(second, render)(T, seed=3)
+        b = getattr(alone, render)(T, seed=3)
+        # two renderers of one mesh in one process already differ by a float32 ulp (the
+        # JIT's kernels), shared materials or not
+        assert a.max() > 0.05 and np.allclose(a, b, rtol=1e-6, atol=1e-6), render
