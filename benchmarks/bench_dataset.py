@@ -8,9 +8,14 @@ the renderer's own RGB-D frame rate measured in the same run (everything around 
   along its intraoperative path (no phantom generation, no PNG/npy encoding, no writing);
 - ``dataset_fps``: frames written / wall time of ``build_dataset`` over ``--seeds``
   (phantom generation in a subprocess, texture baking, path planning, rendering, encoding
-  and atomic writes included).
+  and atomic writes included);
+- memory (the goal's "flat over 1000 frames"): this process's resident set, sampled every
+  0.2 s during ``build_dataset``; ``rss_peak_first_phantom_mb`` and
+  ``rss_peak_last_phantom_mb`` are its peaks while the first and the last seed rendered
+  (a seed's ``render.json`` marks its end), ``rss_growth_mb`` the last one's less the
+  second one's (the first phantom also compiles kernels and fills allocator pools).
 
-Usage: python benchmarks/bench_dataset.py [--seeds 0-3] [--frames 80] [--preop-frames 60]
+Usage: python benchmarks/bench_dataset.py [--seeds 0-4] [--frames 80] [--preop-frames 60]
        [--bites 2] [--width 320] [--height 256] [--spp 16]
        [--phantom-cmd "python -m sim.synthetic"] [--tools]
 
@@ -19,8 +24,8 @@ and two 80-frame intraoperative steps per phantom): the command is measured as i
 when nobody passes options. Everything per phantom (generation, texture baking, renderer
 set-up) weighs more with fewer frames per phantom (``--frames 40 --preop-frames 40
 --bites 1``, the default before 2026-12-02); the first phantom's generation cannot overlap
-any render, so more seeds amortise it: the default of four seeds is closer to a dataset of
-many phantoms than two.
+any render, so more seeds amortise it. The default of five seeds (four until 2026-12-03)
+writes 1100 frames, so that one run also shows the memory over more than 1000 frames.
 
 Without ``--phantom-cmd`` the phantoms come from ``sim dataset``'s own default generator
 (the anatomy generator, ``python -m phantoms generate``); ``--phantom-cmd "python -m
@@ -36,11 +41,12 @@ import argparse
 import shutil
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_render import cpu_simd  # noqa: E402
+from bench_render import cpu_simd, rss_mb  # noqa: E402
 
 from sim.appearance import texture_volume  # noqa: E402
 from sim.config import SimConfig, replace_in  # noqa: E402
@@ -50,9 +56,40 @@ from sim.pipeline import _texture_box, drawn_config, plan_sequences  # noqa: E40
 from sim.render import MeshRenderer  # noqa: E402
 
 
+class RssSampler:
+    """This process's resident set every 0.2 s in a thread, with how many seeds had
+    finished rendering (``DIR/seed_S/render.json`` present) at each sample."""
+
+    def __init__(self, out: Path, seeds: list[int]) -> None:
+        self._marks = [out / f"seed_{s}" / "render.json" for s in seeds]
+        self.samples: list[tuple[int, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.2):
+            done = sum(m.is_file() for m in self._marks)
+            self.samples.append((done, rss_mb()))
+
+    def __enter__(self) -> RssSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def peak_mb(self, finished: int) -> float:
+        """Peak RSS while ``finished`` seeds had finished (NaN if never sampled)."""
+        values = [rss for done, rss in self.samples if done == finished]
+        return max(values) if values else float("nan")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--seeds", default="0-3", help="phantom seeds (default 0-3)")
+    p.add_argument(
+        "--seeds", default="0-4", help="phantom seeds (default 0-4: 1100 frames by default)"
+    )
     p.add_argument(
         "--frames", type=int, default=80, help="frames per intraoperative step (default 80)"
     )
@@ -85,10 +122,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     tmp = Path(tempfile.mkdtemp(prefix="bench_dataset_"))
     try:
+        sampler = RssSampler(tmp / "ds", seeds)
         t0 = time.perf_counter()
-        ds = build_dataset(
-            tmp / "ds", seeds, cfg, bites=args.bites, phantom_cmd=args.phantom_cmd, progress=False
-        )
+        with sampler:
+            ds = build_dataset(
+                tmp / "ds",
+                seeds,
+                cfg,
+                bites=args.bites,
+                phantom_cmd=args.phantom_cmd,
+                progress=False,
+            )
         wall = time.perf_counter() - t0
         dataset_fps = ds["num_frames"] / wall
         # The renderer alone, on the first phantom's step-1 mesh, same drawn config.
@@ -115,6 +159,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"phantom_cmd: {args.phantom_cmd or 'sim dataset default (python -m phantoms generate)'}")
     print(f"dataset_frames: {ds['num_frames']}")
     print(f"dataset_wall_s: {wall:.2f}")
+    peaks = [sampler.peak_mb(k) for k in range(len(seeds))]
+    print(f"rss_peak_per_phantom_mb: {', '.join(f'{p:.0f}' for p in peaks)}")
+    print(f"rss_peak_first_phantom_mb: {peaks[0]:.0f}")
+    print(f"rss_peak_last_phantom_mb: {peaks[-1]:.0f}")
+    # after the first phantom: its start-up (kernels compiled, pools filled) is not growth
+    print(f"rss_growth_mb: {peaks[-1] - peaks[min(1, len(peaks) - 1)]:.0f}")
     print(f"render_rgbd_fps: {render_fps:.2f}")
     print(f"dataset_fps: {dataset_fps:.2f}")
     print(f"dataset_vs_render_ratio: {dataset_fps / render_fps:.3f}")

@@ -20,6 +20,7 @@ seeds whose render folder is complete are kept.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import importlib
 import json
 import logging
@@ -394,6 +395,7 @@ def build_dataset(
                     include_eval=False,
                     progress=progress,
                 )
+                gc.collect()  # the phantom's meshes and scenes in cycles (sim.pipeline)
             renders[int(seed)] = header
             names = [("preop", 0, header["sequences"]["preop"])] + [
                 ("intraop", int(k), v)

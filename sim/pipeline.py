@@ -20,6 +20,7 @@ tissue's depth (the tool is not in it) and ``mask/`` excludes the tool pixels.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 import logging
 from collections.abc import Sequence as Seq
@@ -420,6 +421,10 @@ def render_phantom(
                     meta["blood_faces"] = int((film > 0).sum())
                 render_sequence(renderer, p, tmp / p.name, meta, progress=progress)
             del renderer
+            # A renderer's Mitsuba scene sits in reference cycles, and Python's cycle
+            # collector runs by object counts, not bytes: without this a dataset's process
+            # kept every earlier step's scene (~40 MB per phantom, 911 -> 1410 MB over 12).
+            gc.collect()
         if not include_eval:
             (tmp / "eval").rmdir()
         (tmp / "render.json").write_text(json.dumps(header, indent=2) + "\n")

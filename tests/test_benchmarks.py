@@ -104,8 +104,9 @@ def test_bench_dataset_prints_ratio_last_and_names_its_generator() -> None:
     figures = check_contract(
         pairs,
         "dataset_vs_render_ratio",
-        ["cpu_simd", "phantom_cmd", "dataset_frames", "render_rgbd_fps", "dataset_fps"],
-    )
+        ["cpu_simd", "phantom_cmd", "dataset_frames", "render_rgbd_fps", "dataset_fps",
+         "rss_peak_first_phantom_mb", "rss_peak_last_phantom_mb", "rss_growth_mb"],
+    )  # fmt: skip
     assert figures["phantom_cmd"] == toy
     assert number(figures["dataset_frames"]) == 2 + 1 * 2  # the preop sweep and one step
 
