@@ -178,15 +178,24 @@ class PhantomJob:
                 raise ConfigError("--phantom-cmd", "empty generator command")
             if len(seeds) != 1:
                 raise ValueError("a generator command of one's own runs one seed at a time")
-            where = ["--seed", str(seeds[0]), "--out", str(out_dirs[seeds[0]])]
+            # the documented contract, in its order: --seed S --bites N --out DIR
+            where = [
+                "--seed",
+                str(seeds[0]),
+                "--bites",
+                str(bites),
+                "--out",
+                str(out_dirs[seeds[0]]),
+            ]
         else:
             # Rendering needs the meshes only: no CT volumes (about half the generator's
             # time once started) unless asked.
             base = [sys.executable, "-m", "phantoms", "generate"]
             base += [] if with_ct else ["--no-ct"]
-            where = ["--seeds", ",".join(map(str, seeds)), "--out", out_pattern]
+            where = ["--seeds", ",".join(map(str, seeds)), "--bites", str(bites)]
+            where += ["--out", out_pattern]
         self.out_dirs = out_dirs
-        self.cmd = base + ["--bites", str(bites), *where] + _split("--phantom-args", extra_args)
+        self.cmd = base + where + _split("--phantom-args", extra_args)
         self._log = tempfile.TemporaryFile(mode="w+t")
         try:
             self._proc = subprocess.Popen(
