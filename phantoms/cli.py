@@ -52,15 +52,8 @@ def _param(text: str) -> tuple[str, float]:
         ) from None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m phantoms",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
+def _add_generate_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``generate`` subcommand and its options."""
     gen = sub.add_parser(
         "generate",
         help="generate a phantom: meshes, CT volumes and a manifest per surgical step",
@@ -168,6 +161,18 @@ def build_parser() -> argparse.ArgumentParser:
         "checked against --procedure's structures",
     )
     gen.set_defaults(func=_cmd_generate)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m phantoms",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    _add_generate_parser(sub)
 
     rep = sub.add_parser(
         "repair",

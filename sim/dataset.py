@@ -240,6 +240,53 @@ class PhantomJob:
         self._log.close()
 
 
+class _PhantomQueue:
+    """The phantoms :func:`build_dataset` still has to generate, in order: the default
+    generator makes them all in one run, ahead of the renders; a command of one's own
+    makes one seed ahead of the render (:class:`PhantomJob`)."""
+
+    def __init__(
+        self, pattern: str, bites: int, phantom_cmd: str | None, phantom_args: str, ct: bool
+    ) -> None:
+        self.pattern, self.bites, self.ct = pattern, bites, ct
+        self.phantom_cmd, self.phantom_args = phantom_cmd, phantom_args
+        self.to_generate: list[int] = []
+        self._jobs: dict[int, PhantomJob] = {}
+
+    def folder(self, seed: int) -> Path:
+        return Path(self.pattern.replace("{seed}", str(seed)))
+
+    def start_next(self) -> bool:
+        """Start the next generator run unless one is running; True if one started."""
+        if not self.to_generate or self._jobs:
+            return False
+        batch = self.to_generate[:1] if self.phantom_cmd else list(self.to_generate)
+        del self.to_generate[: len(batch)]
+        job = PhantomJob(
+            batch, self.pattern, self.bites, self.phantom_cmd, self.phantom_args, with_ct=self.ct
+        )
+        self._jobs.update(dict.fromkeys(batch, job))
+        return True
+
+    def wait(self, seed: int) -> None:
+        """Until ``seed``'s phantom is there (a generated or a kept one), then start the
+        next seed's generation, which runs while this one renders."""
+        self.start_next()
+        if seed in self._jobs:
+            job = self._jobs.pop(seed)
+            try:
+                job.wait(seed)
+            finally:
+                if job not in self._jobs.values():
+                    job.cancel()  # its last seed: close its log
+        self.start_next()
+
+    def cancel(self) -> None:
+        for job in set(self._jobs.values()):
+            job.cancel()
+        self._jobs.clear()
+
+
 def render_seed(phantom_seed: int, master_seed: int) -> int:
     """Master seed of one phantom's render: the phantom seed itself when ``master_seed``
     is 0 (the default), else both mixed by numpy's ``SeedSequence`` (another draw of
@@ -356,30 +403,15 @@ def build_dataset(
             out, "the dataset folder's path holds '{seed}', the phantom folders' pattern"
         )
     pattern = str(out / "phantoms" / "seed_{seed}")
-
-    def phantom_dir(seed: int) -> Path:
-        return Path(pattern.replace("{seed}", str(seed)))
-
-    # Seeds whose phantom must be generated, in order. The default generator makes them
-    # all in one run, ahead of the renders; a command of one's own, one seed ahead.
-    to_generate = [
+    queue = _PhantomQueue(pattern, bites, phantom_cmd, phantom_args, phantom_ct)
+    queue.to_generate = [
         s
         for s in seeds
-        if finished[s] is None and not (resume and (phantom_dir(s) / "phantom.json").is_file())
+        if finished[s] is None and not (resume and (queue.folder(s) / "phantom.json").is_file())
     ]
-    jobs: dict[int, PhantomJob] = {}
-
-    def start_next() -> None:
-        if not to_generate or jobs:
-            return
-        batch = to_generate[:1] if phantom_cmd else list(to_generate)
-        del to_generate[: len(batch)]
-        job = PhantomJob(batch, pattern, bites, phantom_cmd, phantom_args, with_ct=phantom_ct)
-        jobs.update(dict.fromkeys(batch, job))
 
     try:
-        start_next()
-        if jobs:
+        if queue.start_next():
             # While the first phantom is made (nothing else to overlap it): the renderer's
             # variant probe and the path planner's Open3D import, ~2 s paid once anyway.
             load_mitsuba(cfg.variant)
@@ -388,17 +420,9 @@ def build_dataset(
             render_dir = out / f"seed_{seed}"
             header = finished[seed]
             if header is None:
-                start_next()
-                if seed in jobs:
-                    job = jobs.pop(seed)
-                    try:
-                        job.wait(seed)
-                    finally:
-                        if job not in jobs.values():
-                            job.cancel()  # its last seed: close its log
-                start_next()  # the next seed's phantom while this one renders
+                queue.wait(seed)
                 header = render_phantom(
-                    phantom_dir(seed),
+                    queue.folder(seed),
                     render_dir,
                     seq_cfgs[seed],
                     include_eval=False,
@@ -421,8 +445,7 @@ def build_dataset(
                     }
                 )
     finally:
-        for job in set(jobs.values()):
-            job.cancel()
+        queue.cancel()
     dataset = {
         "format": DATASET_FORMAT,
         "version": DATASET_VERSION,

@@ -42,9 +42,10 @@ from sim.collision import TissueDistance
 from sim.config import SimConfig, config_to_dict
 from sim.effects import FrameEffects, smear_mask, smear_schedule
 from sim.errors import PhantomError
+from sim.materials import SharedMaterials
 from sim.paths import PathTarget, check_clearance, eval_poses, intraop_path, preop_sweep
 from sim.phantom import Phantom, load_mesh, load_phantom
-from sim.render import MeshRenderer, SharedMaterials
+from sim.render import MeshRenderer
 from sim.tools import ToolSet, ToolTrack, plan_tool_track, tool_set
 from sim.tracking import tracked_poses
 

@@ -32,7 +32,7 @@ from sim.appearance import TextureVolume
 from sim.config import SimConfig
 from sim.effects import FrameEffects, apply_effects, blur_poses
 from sim.imaging import field_stop_mask, sensor_image, vignetting_gain
-from sim.materials import steel_dict, tissue_properties
+from sim.materials import SharedMaterials, steel_dict
 from sim.mitsuba_camera import (
     RenderGrid,
     mitsuba_to_world,
@@ -41,7 +41,7 @@ from sim.mitsuba_camera import (
     z_depth_from_mitsuba_depth,
 )
 from sim.phantom import check_mesh
-from sim.spot_direct import PackedTexture, SpotDirectIntegrator
+from sim.spot_direct import SpotDirectIntegrator
 from sim.tools import ToolSet
 
 
@@ -72,25 +72,6 @@ def _noise_key(seed: int, index: int) -> int:
     return (_frame_seed(seed, index) * 2_654_435_761 + 0x5E45) % (2**32)
 
 
-class SharedMaterials:
-    """What the renderers of one phantom's steps can share: the tissue's loaded Mitsuba
-    BSDF (its colour volumes are ~70 MB of float32 each) and the fast integrator's packed
-    textures, built once per texture volume instead of once per step (~0.4 s of each
-    renderer's ~0.9 s set-up). Keyed by the volumes' identity, which it keeps alive, so
-    one instance must serve one set of volumes, appearance and blood config (a phantom's
-    render: :func:`sim.pipeline.render_phantom`)."""
-
-    def __init__(self) -> None:
-        self._items: dict[tuple, tuple[tuple, Any]] = {}
-
-    def get(self, key: tuple, keep: tuple, make: Any) -> Any:
-        """The object stored under ``key``, made by ``make()`` the first time; ``keep``
-        holds the objects whose ``id`` is in ``key`` alive as long as the entry."""
-        if key not in self._items:
-            self._items[key] = (keep, make())
-        return self._items[key][1]
-
-
 class MeshRenderer:
     """Render one tissue mesh from arbitrary camera poses.
 
@@ -107,7 +88,7 @@ class MeshRenderer:
         ``cfg.blood``'s (Mitsuba: a ``blendbsdf`` over the ``face_blood`` mesh attribute;
         the fast integrator gathers the same weight). All 0 or None: no film, the same
         bytes as before.
-    shared : optional :class:`SharedMaterials` of the other renderers of the same
+    shared : optional :class:`~sim.materials.SharedMaterials` of the other renderers of the same
         phantom (same textures, appearance and blood config): the same bytes, less set-up.
     tools : optional instruments (one Mitsuba mesh each: ``roughconductor`` blended with
         ``tools.diffuse`` of a grey ``diffuse``, brushed steel), placed per
@@ -179,18 +160,9 @@ class MeshRenderer:
 
         shared = SharedMaterials() if shared is None else shared
         blood_cfg = cfg.blood if blood is not None else None
-        tissue_bsdf = shared.get(
-            ("bsdf", id(texture), id(cut_texture) if cut is not None else None, blood_cfg),
-            (texture, cut_texture),
-            lambda: tissue_properties(
-                mi, cfg.appearance, texture, cut, cut_texture, self.depth_only, blood_cfg
-            ),
+        props = shared.tissue_properties(
+            mi, cfg.appearance, texture, cut, cut_texture, self.depth_only, blood_cfg
         )
-        # a Properties object is consumed by the shape that loads it: each mesh gets its
-        # own, holding the shared BSDF object
-        props = mi.Properties()
-        if "bsdf" in tissue_bsdf:
-            props["bsdf"] = tissue_bsdf["bsdf"]
         self.mesh = self._mi_mesh("tissue", mesh, props, with_normals=not self.depth_only)
         if cut is not None:
             self.mesh.add_attribute("face_cut", 1, self._buffer(cut.astype(np.float32)))
@@ -227,26 +199,18 @@ class MeshRenderer:
                 self.field_stop,
                 cfg.light,
                 spp,
-                self._packed(shared, texture),
+                shared.packed(mi, texture),
                 roughness=float(cfg.appearance.roughness),
                 specular=float(cfg.appearance.specular),
                 tissue=self.mesh,
                 cut_faces=cut,
-                cut_texture=None if cut is None else self._packed(shared, cut_texture),
+                cut_texture=None if cut is None else shared.packed(mi, cut_texture),
                 blood_weight=blood,
                 blood=cfg.blood,
                 tools=tuple(self._tool_meshes),
                 tool_bsdf=self._tool_meshes[0].bsdf() if self._tool_meshes else None,
             )
             self._gain_used = mi.Float(self._gain.ravel()[self.field_stop.ravel()])
-
-    def _packed(self, shared: SharedMaterials, texture: TextureVolume | None) -> PackedTexture:
-        """The fast integrator's packed copy of ``texture``, once per shared volume."""
-        if texture is None:
-            raise ValueError("MeshRenderer: a texture volume is required to render RGB")
-        return shared.get(
-            ("packed", id(texture)), (texture,), lambda: PackedTexture(self.mi, texture)
-        )
 
     def _add_tools(self, tools: ToolSet, mesh: trimesh.Trimesh) -> None:
         """The instruments' Mitsuba meshes (brushed steel), their local geometry and the

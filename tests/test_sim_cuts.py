@@ -18,9 +18,10 @@ from chisel.core.geometry import look_at
 from sim.appearance import texture_volume
 from sim.config import SimConfig, replace_in
 from sim.errors import PhantomError
+from sim.materials import SharedMaterials
 from sim.phantom import load_mesh, load_phantom
 from sim.pipeline import load_cut_faces
-from sim.render import MeshRenderer, SharedMaterials
+from sim.render import MeshRenderer
 from sim.spot_direct import pixel_ray_frames
 from sim.synthetic import CHAMBER_CENTER_MM, write_toy_phantom
 
