@@ -44,12 +44,14 @@ def _voxel_at(A, z, rx, ry, nx, ny, nz):
 
 @numba.njit(parallel=True, cache=True)
 def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_mm, tol_mm,
-                max_layers, precise, z0, z1):  # fmt: skip
+                max_layers, precise, max_layer_mm, max_depth_mm, z0, z1):  # fmt: skip
     # Read-only pass: per changed pixel, its status and the depth intervals [z0, z1) of the
     # layers to delete (up to ``max_layers``). No voxel is written here, so the result does
     # not depend on the order the pixels are visited in.
     # Not ``precise`` (a noisy estimate): one layer at most, deleted only when the estimate
-    # lies past the middle of the cavity behind it, and no new surface inside held tissue.
+    # lies past the middle of the cavity behind it, no thicker along the ray than
+    # ``max_layer_mm``, nothing where the old surface lies deeper than ``max_depth_mm``,
+    # and no new surface inside held tissue.
     H, W = mask.shape
     nx, ny, nz = shape[0], shape[1], shape[2]
     status = np.zeros((H, W), dtype=np.uint8)
@@ -61,10 +63,13 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
             ze = np.float64(m_new[v, u])
             if not (zt > 0.0 and ze > 0.0 and np.isfinite(zt) and np.isfinite(ze)):
                 continue
+            if not precise and zt > max_depth_mm:
+                continue  # too far for a noisy estimate's verdict: left alone
             rx = rays[v, u, 0]
             ry = rays[v, u, 1]
+            ray_mm = np.sqrt(rx * rx + ry * ry + rays[v, u, 2] * rays[v, u, 2])
             # Half a voxel of ray length per step, in z units.
-            dz = 0.5 * voxel_mm / np.sqrt(rx * rx + ry * ry + rays[v, u, 2] * rays[v, u, 2])
+            dz = 0.5 * voxel_mm / ray_mm
             # Phase A: the first tissue voxel near the old surface M_t.
             z = zt - voxel_mm
             found = False
@@ -115,6 +120,10 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
                         st = CARVE_NONE  # a noisy estimate cannot place a cut inside tissue
                     break
                 back = z
+                if not precise and (back - start) * ray_mm > max_layer_mm:
+                    if n == 0:
+                        st = CARVE_NONE  # thicker than what surgery takes: the estimate errs
+                    break
                 # Through the cavity to the next surface the model holds.
                 nxt = False
                 while True:
@@ -234,6 +243,8 @@ def carve_first_layer(
     precise: bool = True,
     votes: np.ndarray | None = None,
     noisy_votes: int = 1,
+    noisy_layer_mm: float = np.inf,
+    noisy_max_depth_mm: float = np.inf,
 ) -> tuple[np.ndarray, int]:
     """Deletion-first carving of one frame's change, **in place**; returns (status, voxels).
 
@@ -255,7 +266,9 @@ def carve_first_layer(
     model holds nothing behind is the new depth fused. With ``votes`` (the step's per-voxel
     counts, updated in place) and ``noisy_votes`` > 1 such a frame only votes: a voxel is
     set free at its ``noisy_votes``-th vote of the step (one vote per frame), so that one
-    frame's wrong estimate deletes nothing alone.
+    frame's wrong estimate deletes nothing alone. Such a frame deletes no layer thicker
+    along its ray than ``noisy_layer_mm`` and leaves a pixel whose old surface lies deeper
+    than ``noisy_max_depth_mm`` (z-depth) alone.
 
     m_t, m_new : (H, W) float32 z-depth of the model (at step start) and the estimate M',
         mm, NaN invalid; mask : (H, W) bool change mask; tol_mm : the frame's change
@@ -277,7 +290,8 @@ def carve_first_layer(
     status = _carve_plan(
         tsdf, weight, shape, A, rays, depth(m_t), depth(m_new), np.asarray(mask, bool),
         float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
-        int(max_layers), bool(precise), z0, z1,
+        int(max_layers), bool(precise), float(noisy_layer_mm), float(noisy_max_depth_mm),
+        z0, z1,
     )  # fmt: skip
     use_reset = reset is not None
     if reset is not None and (reset.shape != model.shape or reset.dtype != np.uint8):

@@ -60,6 +60,22 @@ class UpdateConfig:
     at once). On the default experiment one frame's estimate, wrong through a whole region
     (a network's depth inside a dark cavity), deleted hundreds of voxels of tissue that
     other views did not confirm (docs/updater.md). 1 = every noisy frame deletes alone."""
+    noisy_layer_mm: float = 4.0
+    """Deletion carving of a noisy frame (see ``noisy_carve``): the layer it deletes is at
+    most this thick along the ray, mm; a thicker one is left alone. What FESS takes is
+    lamellae 0.4-2 mm thick (uncinate, bulla and ethmoid cell walls: docs/phantoms.md),
+    4 mm along a ray through a 2 mm lamella at 60 deg. A network's "deeper here" across a
+    thicker layer (a turbinate, the lateral wall) deleted tissue that was still there, up to
+    9 mm from the true removal (docs/updater.md). Exact depth deletes any thickness."""
+    noisy_max_depth_mm: float = 20.0
+    """Deletion carving of a noisy frame (see ``noisy_carve``): a changed pixel whose old
+    surface lies deeper than this (z-depth, mm) is left alone. A network's error grows with
+    depth (abs-rel 0.06-0.1: 1.2-2 mm at 20 mm, the thickness of the layers it decides on)
+    and the far field is dark (the tip light falls off with the square of the distance);
+    the endoscope inspects a cut from close up (its working distance is 5-30 mm).
+    Over the `table` run's seeds 0-4 every truly removed voxel the network row found lay
+    within 20 mm of a camera of its step, 29 % of its false deletions beyond
+    (docs/updater.md). Exact depth carves at any depth."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
     points only while the hand-eye estimate has no prior (lost track at the start), and
@@ -92,5 +108,11 @@ class UpdateConfig:
             raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")
         if not 1 <= self.noisy_votes <= 255:
             raise InvalidInputError("noisy_votes", f"must be in [1, 255], got {self.noisy_votes}")
+        if not self.noisy_layer_mm > 0:
+            raise InvalidInputError("noisy_layer_mm", f"must be > 0 mm, got {self.noisy_layer_mm}")
+        if not self.noisy_max_depth_mm > 0:
+            raise InvalidInputError(
+                "noisy_max_depth_mm", f"must be > 0 mm, got {self.noisy_max_depth_mm}"
+            )
         if self.hand_eye_frames < 1:
             raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")

@@ -253,6 +253,52 @@ def test_a_noisy_estimate_deletes_one_layer_and_only_past_the_middle_of_the_cavi
         assert (_freed(model, m.tsdf, 13.8, 15.0) > 0) == precise
 
 
+def test_a_noisy_estimate_deletes_no_layer_thicker_than_surgery_takes() -> None:
+    """FESS takes lamellae 0.4-2 mm thick; a noisy "deeper here" across a 6 mm layer (a
+    turbinate) is the estimate's error. Air behind each wall to z = 20, estimate at z 19."""
+    from chisel.carve import CARVE_DELETED, CARVE_NONE
+
+    assert UpdateConfig().noisy_layer_mm == 4.0
+    for wall, cap, noisy_deletes in (
+        ((10.0, 13.0), 4.0, True),  # 3 mm along these near-axial rays: taken
+        ((10.0, 16.0), 4.0, False),  # 6 mm: left alone
+        ((10.0, 16.0), 6.5, True),  # unless the cap allows it
+    ):
+        model = _walls_model([wall])
+        m = model.copy()
+        status, _ = _carve_at(m, 19.0, precise=False, noisy_layer_mm=cap)
+        expected = CARVE_DELETED if noisy_deletes else CARVE_NONE
+        assert np.all(status[30:50, 38:58] == expected), (wall, cap)
+        assert (_freed(model, m.tsdf, wall[0] - 0.2, wall[1] + 0.2) > 0) == noisy_deletes
+        m = model.copy()  # exact depth deletes any thickness
+        status, _ = _carve_at(m, 19.0, precise=True, noisy_layer_mm=cap)
+        assert np.all(status[30:50, 38:58] == CARVE_DELETED)
+    for bad in (0.0, -1.0):
+        with pytest.raises(InvalidInputError, match="noisy_layer_mm"):
+            UpdateConfig(noisy_layer_mm=bad)
+
+
+def test_a_noisy_estimate_leaves_a_surface_beyond_its_depth_cap_alone() -> None:
+    """A 0.8 mm lamella whose front lies 10 mm from the camera, air behind to z = 20, the
+    estimate at z 19: a noisy frame deletes it within the cap and leaves it alone beyond."""
+    from chisel.carve import CARVE_DELETED, CARVE_NONE
+
+    assert UpdateConfig().noisy_max_depth_mm == 20.0
+    model = _walls_model([(10.0, 10.8)])
+    for cap, precise, expected in (
+        (20.0, False, CARVE_DELETED),
+        (9.5, False, CARVE_NONE),
+        (9.5, True, CARVE_DELETED),  # exact depth carves at any depth
+    ):
+        m = model.copy()
+        status, _ = _carve_at(m, 19.0, precise=precise, noisy_max_depth_mm=cap)
+        assert np.all(status[30:50, 38:58] == expected), (cap, precise)
+        assert (_freed(model, m.tsdf, 9.8, 11.0) > 0) == (expected == CARVE_DELETED)
+    for bad in (0.0, -5.0):
+        with pytest.raises(InvalidInputError, match="noisy_max_depth_mm"):
+            UpdateConfig(noisy_max_depth_mm=bad)
+
+
 def test_noisy_frames_delete_a_voxel_only_at_its_third_vote_and_exact_depth_at_once() -> None:
     # A 0.8 mm lamella at z = 10, air behind it to z = 20; every frame's estimate says z 18.
     from chisel.carve import CARVE_DELETED
