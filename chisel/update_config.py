@@ -73,8 +73,8 @@ class UpdateConfig:
     depth (abs-rel 0.06-0.1: 1.2-2 mm at 20 mm, the thickness of the layers it decides on)
     and the far field is dark (the tip light falls off with the square of the distance);
     the endoscope inspects a cut from close up (its working distance is 5-30 mm).
-    Over the `table` run's seeds 0-4 every truly removed voxel the network row found lay
-    within 20 mm of a camera of its step, 29 % of its false deletions beyond
+    Over the `table` run's seeds 0-4 (layer limit on) every truly removed voxel the network
+    row found lay within 20 mm of a camera of its step, 29 % of its false deletions beyond
     (docs/updater.md). Exact depth carves at any depth."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
