@@ -383,15 +383,7 @@ def test_evaluate_step_from_files_uses_true_poses(tmp_path: Path) -> None:
     p = _scene(tmp_path)
     box = [-4.0, -3.0, 15.0, 4.0, 3.0, 25.0]
     r = evaluate_step(
-        p["gt"],
-        {"updated": p["updated"], "no_update": p["preop"]},
-        p["seq"],
-        box,
-        step=1,
-        cfg=CFG,
-        change_mask_paths={"updated": p["masks"]},
-        change_sequence_path=p["seq"],
-        prev_gt_mesh_path=p["prev_gt"],
+        p["gt"], {"updated": p["updated"], "no_update": p["preop"]}, p["seq"], box, 1, CFG
     )
     assert r["protocol"]["eval_poses"].endswith("poses_true.txt")
     gt_mesh = load_mesh(p["gt"], "gt")
@@ -406,14 +398,54 @@ def test_evaluate_step_from_files_uses_true_poses(tmp_path: Path) -> None:
     )
     cell = r["methods"]["no_update"]
     assert cell["n_points"] == expect.n_points and cell["mean_mm"] == pytest.approx(expect.mean_mm)
-    # The true change is x < 0 (GT dropped 2 mm there); predicted = left image half.
-    truth = true_change_masks(load_mesh(p["prev_gt"], "g"), gt_mesh, CAM, true_T)
-    pred = np.zeros_like(truth)
-    pred[:, :, : CAM.width // 2] = True
-    s = mask_precision_recall(pred, truth)
-    assert r["methods"]["updated"]["mask_precision"] == pytest.approx(s.precision)
-    assert r["methods"]["updated"]["mask_recall"] == pytest.approx(s.recall)
-    assert r["methods"]["no_update"]["mask_precision"] is None
+    assert cell["mask_precision"] is None and r["methods"]["updated"]["mask_precision"] is None
+
+
+def _analytic_change(eye_x_mm: list[float]) -> np.ndarray:
+    """The scene's change seen from cameras at (x, 0, 0) looking down +z: the tissue at
+    z = 20 mm is gone for world x < 0, so a pixel changed where its ray meets z = 20 at
+    x < 0 (the surface behind, at 22 mm, is then 2 mm deeper)."""
+    rays = CAM.rays_cam()
+    u = rays[..., 0] / rays[..., 2]
+    return np.stack([x + 20.0 * u < 0 for x in eye_x_mm])
+
+
+def test_change_masks_are_scored_where_they_were_made(tmp_path: Path) -> None:
+    """A mask lies in the image of the pose its method used (the tracked one, 5 mm off the
+    true one here) and is scored against what the method's start model lacked."""
+    p = _scene(tmp_path)
+    box = [-4.0, -3.0, 15.0, 4.0, 3.0, 25.0]
+    tracked_x, true_x = [5.0, 6.0], [0.0, 1.0]
+    exact = tmp_path / "exact.npz"
+    np.savez(exact, masks=_analytic_change(tracked_x))
+    at_true = tmp_path / "at_true.npz"
+    true_T = np.stack([np.eye(4), look_at([1, 0, 0], [1, 0, 20], up=[0, -1, 0])])
+    np.savez(at_true, masks=_analytic_change(true_x), T_world_from_cam=true_T)
+    shifted = tmp_path / "shifted.npz"  # a detector whose masks sit at the true poses
+    np.savez(shifted, masks=_analytic_change(true_x))
+    methods = {name: p["updated"] for name in ("exact", "at_true", "shifted", "done")}
+    r = evaluate_step(
+        p["gt"],
+        methods,
+        p["seq"],
+        box,
+        1,
+        CFG,
+        {"exact": exact, "at_true": at_true, "shifted": shifted, "done": exact},
+        p["seq"],
+        {"exact": p["prev_gt"], "at_true": p["prev_gt"], "shifted": p["prev_gt"], "done": p["gt"]},
+    )
+    cells = r["methods"]
+    for name in ("exact", "at_true"):  # right where made: only edge pixels may differ
+        assert cells[name]["mask_precision"] > 0.99 and cells[name]["mask_recall"] > 0.99
+    # At the tracked poses the change is x < -5 / 20 (x < -6 / 20) of the image, the
+    # masks made at the true poses say x < 0 (x < -1 / 20): all of the truth, and more.
+    truth, pred = _analytic_change(tracked_x), _analytic_change(true_x)
+    assert cells["shifted"]["mask_recall"] > 0.99
+    assert cells["shifted"]["mask_precision"] == pytest.approx(truth.sum() / pred.sum(), abs=0.02)
+    assert cells["shifted"]["mask_precision"] < 0.8
+    # A model that already held the step's surface lacked nothing: every mask pixel is false.
+    assert cells["done"]["mask_recall"] is None and cells["done"]["mask_precision"] == 0.0
 
 
 def test_evaluate_step_rejects_bad_files(tmp_path: Path) -> None:
@@ -439,18 +471,17 @@ def test_evaluate_step_rejects_bad_files(tmp_path: Path) -> None:
         evaluate_step(
             p["gt"], {"updated": p["updated"]}, p["seq"], box, 1, CFG, {"updated": p["masks"]}
         )
-    with pytest.raises(InvalidInputError, match="has no mesh"):
-        evaluate_step(
-            p["gt"],
-            {"updated": p["updated"]},
-            p["seq"],
-            box,
-            1,
-            CFG,
-            {"other": p["masks"]},
-            p["seq"],
-            p["prev_gt"],
-        )
+    bad = tmp_path / "bad_poses.npz"
+    np.savez(bad, masks=np.zeros((2, *CAM.shape), bool), T_world_from_cam=np.eye(4)[None])
+    for masks, starts, match in (
+        ({"other": p["masks"]}, {"other": p["prev_gt"]}, "has no mesh"),
+        ({"updated": p["masks"]}, {"other": p["prev_gt"]}, "no start surface"),
+        ({"updated": bad}, {"updated": p["prev_gt"]}, "bad_poses.npz.*T_world_from_cam"),
+    ):
+        with pytest.raises(InvalidInputError, match=match):
+            evaluate_step(
+                p["gt"], {"updated": p["updated"]}, p["seq"], box, 1, CFG, masks, p["seq"], starts
+            )
 
 
 def test_load_change_masks_formats_and_errors(tmp_path: Path) -> None:

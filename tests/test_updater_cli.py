@@ -62,6 +62,8 @@ def test_build_update_mesh_render(files: dict) -> None:
     assert np.asarray(f0["T_model_from_est"]).shape == (4, 4) and f0["fitness"] > 0.5
     with np.load(d / "masks.npz") as z:
         assert z["masks"].shape == (6, 48, 64) and z["masks"].any() and z["used"].all()
+        # Each mask is stored with the pose whose image it lies in: the tracked one.
+        assert np.array_equal(z["T_world_from_cam"], Sequence(d / "step_01").poses)
     assert TsdfModel.load(d / "m1.npz").step == 1
     assert main(["mesh", "--model", str(d / "m1.npz"), "--out", str(d / "m1.ply")]) == 0
     mesh = trimesh.load(d / "m1.ply")

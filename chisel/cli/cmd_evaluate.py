@@ -42,8 +42,9 @@ them, else its tracked poses); same-pixel points are back-projected to world mm,
 mean ± std distance over pixels whose GT point lies inside the ROI box (and where the
 method has a surface) is reported, with the count and the missing fraction.
 Surface metrics inside the box: accuracy, completeness, HD95, chamfer, F-score at 1 mm.
-Change masks (optional): precision / recall against the true change (GT depth of this
-step deeper than the previous step's by > 1 mm at --change-sequence's poses).
+Change masks (optional): precision / recall against what each method's model lacked when
+the step began (this step's GT surface > 1 mm beyond --start-surfaces' surface), along the
+masks' own rays (the poses stored with them, else --change-sequence's tracked poses).
 
 Subcommands: 'table' (step files -> metrics.json/.csv/.md), 'seeds' (several
 metrics.json -> mean and spread), 'sweep' (metrics.json per swept value -> CSV).
@@ -91,7 +92,7 @@ def _run_step(args: argparse.Namespace) -> int:
         cfg=SurfaceMetricConfig(n_samples=args.samples, seed=args.seed),
         change_mask_paths=_name_path_pairs(args.change_masks, "--change-masks") or None,
         change_sequence_path=args.change_sequence,
-        prev_gt_mesh_path=args.prev_gt_mesh,
+        start_surface_paths=_name_path_pairs(args.start_surfaces, "--start-surfaces") or None,
     )
     write_step_metrics(args.out, result)
     log.info("wrote %s", args.out)
@@ -194,7 +195,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="predicted change masks per method (.npz with key 'masks', or a PNG folder)",
     )
     p.add_argument("--change-sequence", type=Path, help="the step's update sequence (mask poses)")
-    p.add_argument("--prev-gt-mesh", type=Path, help="ground-truth mesh of the previous step")
+    p.add_argument(
+        "--start-surfaces",
+        nargs="+",
+        metavar="NAME=MODEL",
+        help="per method with masks, the model (.npz) or mesh its step began from: the masks "
+        "are scored against what it lacked",
+    )
     p.set_defaults(func=_run_step)
     sub = p.add_subparsers(dest="evaluate_command", metavar="SUBCOMMAND")
 

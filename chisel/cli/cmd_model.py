@@ -468,8 +468,13 @@ def _cmd_update(args: argparse.Namespace) -> int:
                 [f.mask if f.mask is not None else np.zeros(shape, bool) for f in report.frames]
             )
             used = np.array([f.used for f in report.frames], dtype=bool)
+            # Each mask lies in the image of the pose the frame's model render was made at.
+            pose_of = {f.index: f.T_world_from_cam for f in frames}
+            poses = np.stack([pose_of[f.index] for f in report.frames])
             with open(temps[1], "wb") as fh:
-                np.savez_compressed(fh, frame_index=idx, masks=masks, used=used)
+                np.savez_compressed(
+                    fh, frame_index=idx, masks=masks, used=used, T_world_from_cam=poses
+                )
         new_model.save(temps[-1])
     log.info("step %d: %d/%d frames used -> %s", report.step, len(report.frames_used), n, args.out)
     return 0

@@ -1,5 +1,6 @@
-"""Change masks scored against the true change: GT depth of step t+1 beyond that of
-step t by more than the paper's 1 mm at the same pose (docs/evaluation.md)."""
+"""Change masks scored against the true change: GT depth beyond a reference depth (the
+model the step began from, or the previous GT step) by more than the paper's 1 mm, at
+the same pose (docs/evaluation.md)."""
 
 from __future__ import annotations
 

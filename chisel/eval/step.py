@@ -21,7 +21,7 @@ from chisel.eval.masks import (
     MaskScores,
     _check_masks,
     mask_precision_recall,
-    true_change_masks,
+    true_change_masks_from_depths,
 )
 from chisel.eval.metrics import (
     CorrespondenceError,
@@ -100,7 +100,7 @@ class ChangeMaskInput:
     pred_masks: np.ndarray
     """(N, H, W) bool, True = changed, one per frame of the step's update sequence."""
     true_masks: np.ndarray
-    """(N, H, W) bool true change at the same poses (see :func:`true_change_masks`)."""
+    """(N, H, W) bool true change in the same images (see :func:`_mask_inputs`)."""
     valid: np.ndarray | None = None
     """(H, W) or (N, H, W) bool pixels to score (e.g. the camera mask), or None = all."""
 
@@ -248,6 +248,91 @@ def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -
     return arr
 
 
+def load_mask_poses(path: str | Path, sequence_poses: np.ndarray) -> np.ndarray:
+    """The pose each predicted mask's pixels belong to: (N, 4, 4) ``T_world_from_cam``.
+
+    A method's change mask lives in the image of the pose it rendered its model at, its
+    tracked pose (the paper registers the estimate to the render and re-projects it into
+    that image). ``chisel update --masks`` stores those poses (key ``T_world_from_cam``,
+    at ``frame_index``); any other masks are taken at ``sequence_poses`` (the update
+    sequence's tracked poses, ``poses.txt``).
+    """
+    poses = np.array(sequence_poses, dtype=np.float64, copy=True)
+    path = Path(path)
+    if not path.is_file():
+        return poses
+    with np.load(path, allow_pickle=False) as z:
+        if "T_world_from_cam" not in z.files:
+            return poses
+        given = np.asarray(z["T_world_from_cam"], dtype=np.float64)
+        idx = (
+            np.asarray(z["frame_index"], dtype=np.int64)
+            if "frame_index" in z.files
+            else np.arange(len(poses))
+        )
+    if given.shape != (len(idx), 4, 4):
+        raise InvalidInputError(
+            path, f"T_world_from_cam must hold {len(idx)} poses (N, 4, 4), got {given.shape}"
+        )
+    poses[idx] = _check_poses(given, f"{path}: T_world_from_cam")
+    return poses
+
+
+def load_start_surface(path: str | Path, source: str) -> trimesh.Trimesh:
+    """The surface a method's step started from: a model (``.npz``, its surface extracted
+    as the updater renders it) or a mesh file."""
+    if Path(path).suffix.lower() == ".npz":
+        from chisel.mesh import extract_mesh
+        from chisel.model import TsdfModel
+
+        return extract_mesh(TsdfModel.load(path), with_color=False)
+    return load_mesh(path, source)
+
+
+def _mask_inputs(
+    change_mask_paths: Mapping[str, str | Path],
+    start_surface_paths: Mapping[str, str | Path],
+    change_sequence_path: str | Path,
+    gt_mesh: trimesh.Trimesh,
+    method_names: set[str],
+) -> dict[str, ChangeMaskInput]:
+    """Each method's predicted masks and the change they should have found.
+
+    The truth is what the method's model was missing when the step began: the step's GT
+    surface lies more than 1 mm beyond the model's surface along the mask's own rays (the
+    pose the mask was made at, :func:`load_mask_poses`). Scored at the true poses instead,
+    a perfect detector would lose every pixel its tracking error shifts; scored against
+    the previous GT step, it would be penalised for finding what an earlier step missed.
+    """
+    cseq = SequenceFolder(change_sequence_path)
+    camera = cseq.camera
+    gt_cache: dict[bytes, np.ndarray] = {}
+    starts: dict[str, trimesh.Trimesh] = {}  # at step 1 every method starts from one model
+    out: dict[str, ChangeMaskInput] = {}
+    for name, p in change_mask_paths.items():
+        if name not in method_names:
+            raise InvalidInputError("change_mask_paths", f"masks for {name!r}, which has no mesh")
+        if name not in start_surface_paths:
+            raise InvalidInputError(
+                "start_surface_paths",
+                f"{name!r} has change masks but no start surface (the model its step began "
+                "from, .npz, or a mesh)",
+            )
+        pred = load_change_masks(p, len(cseq), camera.shape)
+        poses = load_mask_poses(p, cseq.poses)
+        key = poses.tobytes()
+        if key not in gt_cache:
+            gt_cache[key] = render_depths(gt_mesh, camera, poses)
+        start_path = str(start_surface_paths[name])
+        if start_path not in starts:
+            starts[start_path] = load_start_surface(start_path, f"start surface of {name!r}")
+        truth = true_change_masks_from_depths(
+            render_depths(starts[start_path], camera, poses), gt_cache[key]
+        )
+        out[name] = ChangeMaskInput(pred, truth, cseq.camera_mask)
+    return out
+
+
 def _eval_poses(seq: SequenceFolder) -> tuple[np.ndarray, str]:
     # The protocol fixes exact camera poses: use the true ones when the sequence has them.
     if seq.true_poses is not None:
@@ -304,7 +389,7 @@ def evaluate_step(
     cfg: SurfaceMetricConfig = SurfaceMetricConfig(),  # noqa: B008 - frozen, immutable
     change_mask_paths: Mapping[str, str | Path] | None = None,
     change_sequence_path: str | Path | None = None,
-    prev_gt_mesh_path: str | Path | None = None,
+    start_surface_paths: Mapping[str, str | Path] | None = None,
     removal_model_paths: Mapping[str, str | Path] | None = None,
     preop_model_path: str | Path | Mapping[str, str | Path] | None = None,
     ct_label_paths: tuple[str | Path, str | Path] | None = None,
@@ -316,8 +401,10 @@ def evaluate_step(
     (true poses when present); its camera mask, if any, limits the counted pixels.
     roi_box_mm : the ROI box, or six numbers xmin, ymin, zmin, xmax, ymax, zmax (mm).
     change_mask_paths : name -> predicted change masks (see :func:`load_change_masks`) of the
-    step's update sequence ``change_sequence_path``; scored against the true change between
-    ``prev_gt_mesh_path`` (step t-1) and ``gt_mesh_path`` at that sequence's poses.
+    step's update sequence ``change_sequence_path``; scored against what the method's
+    model lacked: ``gt_mesh_path`` more than 1 mm beyond ``start_surface_paths[name]`` (the
+    model, .npz, or mesh the method's step began from) at the masks' own poses
+    (:func:`_mask_inputs`).
     removal_model_paths : name -> the method's model file (.npz) at this step; with
     ``preop_model_path`` (one file, or name -> the method's own preoperative model) and
     ``ct_label_paths`` (preop label CT, this step's label CT) the removed-tissue Dice and
@@ -333,24 +420,14 @@ def evaluate_step(
 
     change_inputs: dict[str, ChangeMaskInput] | None = None
     if change_mask_paths:
-        if change_sequence_path is None or prev_gt_mesh_path is None:
+        if change_sequence_path is None or start_surface_paths is None:
             raise InvalidInputError(
                 "change_mask_paths",
-                "scoring change masks needs change_sequence_path and prev_gt_mesh_path",
+                "scoring change masks needs change_sequence_path and start_surface_paths",
             )
-        cseq = SequenceFolder(change_sequence_path)
-        cposes, _ = _eval_poses(cseq)
-        truth = true_change_masks(
-            load_mesh(prev_gt_mesh_path, "previous ground-truth mesh"), gt_mesh, cseq.camera, cposes
+        change_inputs = _mask_inputs(
+            change_mask_paths, start_surface_paths, change_sequence_path, gt_mesh, set(meshes)
         )
-        change_inputs = {}
-        for name, p in change_mask_paths.items():
-            if name not in meshes:
-                raise InvalidInputError(
-                    "change_mask_paths", f"masks for {name!r}, which has no mesh"
-                )
-            pred = load_change_masks(p, len(cseq), cseq.camera.shape)
-            change_inputs[name] = ChangeMaskInput(pred, truth, cseq.camera_mask)
 
     removals = None
     if removal_model_paths:

@@ -117,11 +117,14 @@ def update_sequence(wc):
     return f"{RESULTS}/seed_{wc.seed}/render/step_{wc.step}"
 
 
-def previous_model(wc):
+def previous_model(wc, method=None):
+    # The model a method's step began from (its update's input; its change masks are
+    # scored against it).
+    method = method or wc.method
     step = int(wc.step)
     if step == 1:
-        return method_preop_model(wc, wc.method)
-    return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{wc.method}/step_{step - 1:02d}/model.npz"
+        return method_preop_model(wc, method)
+    return f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{method}/step_{step - 1:02d}/model.npz"
 
 
 def update_inputs(wc):

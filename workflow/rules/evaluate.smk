@@ -9,6 +9,7 @@ rule evaluate_step:
             f"{RESULTS}/seed_{wc.seed}/{wc.variant}/{m}/step_{wc.step}/change_masks.npz"
             for m in mask_methods(wc)
         ],
+        start_models=lambda wc: [previous_model(wc, m) for m in mask_methods(wc)],
     output:
         metrics=f"{RESULTS}/seed_{{seed}}/{{variant}}/eval/step_{{step}}.json",
     log:

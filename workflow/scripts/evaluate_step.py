@@ -27,9 +27,8 @@ result = evaluate_step(
     step=step,
     change_mask_paths=masks,
     change_sequence_path=sm.params.change_sequence if masks else None,
-    prev_gt_mesh_path=named_path(sm.input.manifest, steps[step - 1]["mesh"], "steps[].mesh")
-    if masks
-    else None,
+    start_surface_paths=dict(zip(sm.params.mask_methods, sm.input.start_models, strict=True))
+    or None,
     removal_model_paths=dict(zip(sm.params.methods, sm.input.models, strict=True)),
     preop_model_path=dict(zip(sm.params.methods, sm.input.preop_models, strict=True)),
     ct_label_paths=(
