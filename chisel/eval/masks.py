@@ -80,9 +80,10 @@ def true_change_masks_from_depths(
     after_depths_mm: np.ndarray,
     threshold_mm: float = CHANGE_THRESHOLD_MM,
 ) -> np.ndarray:
-    """The true change between two GT depth stacks rendered at the same poses.
+    """The true change between two depth stacks rendered at the same poses.
 
-    before_depths_mm, after_depths_mm : (N, H, W) float32 z-depth, mm, NaN = no surface.
+    before_depths_mm : (N, H, W) float32 z-depth, mm, NaN = no surface: the reference (a
+    method's start model, or the previous GT step). after_depths_mm : the same, the GT.
     Returns (N, H, W) bool: depth grew by more than ``threshold_mm``, or the surface seen
     before is gone after (tissue removed along the whole ray).
     """

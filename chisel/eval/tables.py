@@ -287,7 +287,8 @@ def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
     )
     lines += [
         "",
-        "Surface metrics inside the ROI box (mm; F-score at 1 mm; mask scores vs the true change).",
+        "Surface metrics inside the ROI box (mm; F-score at 1 mm; mask scores vs what each "
+        "model lacked, along the masks' rays).",
         "",
         "| step | method | " + " | ".join(surf_keys) + " |",
         "|---|---|" + "---|" * len(surf_keys),
