@@ -98,6 +98,30 @@ def test_untrained_network_returns_the_render_exactly() -> None:
     assert torch.allclose(p, torch.full_like(p, 0.5))
 
 
+class _FixedHead(ChangeAwarePredictor):
+    """A predictor whose network outputs are given: (log-ratio correction, change logit)."""
+
+    def __init__(self, r: torch.Tensor, c: torch.Tensor) -> None:
+        super().__init__(ChangeNet(TINY))
+        self._r, self._c = r, c
+
+    def raw(self, rgb: torch.Tensor, prior_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self._r, self._c
+
+
+def test_output_is_the_render_where_the_change_head_says_unchanged() -> None:
+    pairs = wall_pairs(1, seed=5)
+    r = torch.full((1, 1, H, W), 0.5)
+    c = torch.full((1, 1, H, W), -1.0)  # p = 0.27: a large correction, but "unchanged"
+    c[..., W // 2 :] = 2.0  # p = 0.88: "changed"
+    depth, p = _FixedHead(r, c).eval()(pairs.rgb, pairs.prior_mm)
+    prior = pairs.prior_mm[0]
+    assert torch.equal(depth[0, :, : W // 2], prior[:, : W // 2])
+    expect = prior[:, W // 2 :] * torch.exp(torch.tensor(0.5) * torch.sigmoid(torch.tensor(2.0)))
+    assert torch.allclose(depth[0, :, W // 2 :], expect)
+    assert torch.allclose(p[0, :, W // 2 :], torch.sigmoid(torch.tensor(2.0)))
+
+
 def test_no_change_output_equals_the_render(tiny_trained: ChangeNet) -> None:
     rng = np.random.default_rng(11)
     predictor = ChangeAwarePredictor(tiny_trained).eval()

@@ -7,7 +7,8 @@ its median, the render's validity) and predicts a per-pixel **log-ratio correcti
 the render plus a **change logit**:
 
     p_change = sigmoid(c)
-    depth_mm = prior_mm * exp(p_change * r)   (NaN where the render is invalid)
+    depth_mm = prior_mm * exp(p_change * r)   where p_change >= 0.5, else prior_mm
+                                              (NaN where the render is invalid)
 
 The head starts at zero, so an untrained network returns the render itself; training only
 has to learn where the render is no longer true and how much deeper the surface lies
@@ -162,7 +163,8 @@ class ChangeAwarePredictor(nn.Module):
       rgb : (B, H, W, 3) uint8 (or float in [0, 255]); prior_mm : (B, H, W) float32 z-depth
       of the model's render at the tracked pose, mm, NaN (or <= 0) = invalid.
       Returns ``(depth_mm, p_change)``, both (B, H, W) float32: depth = prior *
-      exp(p_change * r), NaN where the render is invalid; p_change in [0, 1].
+      exp(p_change * r) where p_change >= 0.5, else the prior; NaN where the render is
+      invalid; p_change in [0, 1].
     This is the module that is scripted, exported (TorchScript) and run.
     """
 
@@ -235,10 +237,12 @@ class ChangeAwarePredictor(nn.Module):
         valid = torch.isfinite(prior) & (prior > 0)
         # The correction is applied in proportion to the change probability: where the
         # network is sure nothing changed, the render comes out as it is (held-out
-        # phantoms: unchanged abs-rel 0.011 -> 0.004, mask precision 0.36 -> 0.83).
-        depth = torch.where(
-            valid, prior * torch.exp(r[:, 0] * p), torch.full_like(prior, float("nan"))
-        )
+        # phantoms: unchanged abs-rel 0.011 -> 0.004, mask precision 0.36 -> 0.83). Where
+        # its change head decides "unchanged" (p < 0.5) the render comes out unchanged:
+        # a soft gate alone let large corrections through at p 0.2-0.5, which flagged
+        # unchanged tissue (docs/depth.md).
+        corrected = torch.where(p >= 0.5, prior * torch.exp(r[:, 0] * p), prior)
+        depth = torch.where(valid, corrected, torch.full_like(prior, float("nan")))
         return depth, p
 
 
