@@ -680,11 +680,26 @@ def test_cli_evaluate_table_sweep_seeds(tmp_path: Path) -> None:
                 "2000",
                 "--out",
                 str(tmp_path / f"s{step}.json"),
+                *(
+                    [
+                        "--change-masks",
+                        f"updated={p['masks']}",
+                        "--change-sequence",
+                        str(p["seq"]),
+                        "--start-surfaces",
+                        f"updated={p['prev_gt']}",
+                    ]
+                    if step == 1
+                    else []
+                ),
             ]
         )
         assert rc == 0
     s0 = json.loads((tmp_path / "s0.json").read_text())
     assert s0["step"] == 0 and s0["methods"]["no_update"]["mean_mm"] == 0.0
+    # The left image half, scored at the tracked poses (5 mm off): all of the change there.
+    s1 = json.loads((tmp_path / "s1.json").read_text())["methods"]["updated"]
+    assert s1["mask_recall"] > 0.99 and 0.3 < s1["mask_precision"] < 0.8
     assert (
         cli_main(
             [
