@@ -12,6 +12,8 @@ import argparse
 import logging
 from pathlib import Path
 
+import trimesh
+
 from chisel.cli.args import trainer_options
 from chisel.cli.provenance import canonical_command, environment, finetune_info, write_summary
 from chisel.core.errors import InvalidInputError
@@ -59,6 +61,7 @@ FINETUNE_OPTS = [
     "checkpoint",
     "sequence",
     "mesh",
+    "model",
     "out",
     "steps",
     "batch_size",
@@ -117,15 +120,33 @@ def train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _prior_surface(args: argparse.Namespace) -> trimesh.Trimesh:
+    """The surface rendered as the fine-tuning prior (and target).
+
+    --model: the preoperative model's surface as the updater renders M_t (marching cubes
+    of the TSDF), so the network is fine-tuned on the prior it is given in use: a voxel-
+    sized, smoothed copy of the CT surface whose thin lamellae can be thicker, holed or
+    missing. Trained on mesh priors alone it reads those differences as change.
+    """
+    if args.model is not None:
+        from chisel.model import TsdfModel  # noqa: PLC0415
+        from chisel.render import ModelRenderer  # noqa: PLC0415
+
+        return ModelRenderer(TsdfModel.load(args.model)).mesh
+    return read_mesh_file(args.mesh, "--mesh", READABLE_MESH_SUFFIXES)
+
+
 def finetune(args: argparse.Namespace) -> int:
     """``chisel depth finetune --kind change-aware --mesh CT_SURFACE``."""
-    if args.mesh is None:
+    if (args.mesh is None) == (args.model is None):
         raise InvalidInputError(
-            "--mesh", "change-aware fine-tuning needs the CT surface mesh (the prior)"
+            "--mesh/--model",
+            "change-aware fine-tuning needs exactly one prior: the CT surface mesh (--mesh) "
+            "or the preoperative model (--model)",
         )
     parent = Path(args.checkpoint)
     net, parent_info = load_change_checkpoint(parent)
-    mesh = read_mesh_file(args.mesh, "--mesh", READABLE_MESH_SUFFIXES)
+    mesh = _prior_surface(args)
     seqs = [Sequence(p) for p in args.sequence]
     parts = [preop_prior_set(s, mesh, frame_step=args.frame_step) for s in seqs]
     targets = sorted({what for _, what in parts})

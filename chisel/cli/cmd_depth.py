@@ -60,7 +60,7 @@ _KINDS = ("monocular", "change-aware")
 
 
 def _change_aware(args: argparse.Namespace) -> bool:
-    """True for --kind change-aware; --steps/--mesh/--eval-every are refused for the monocular
+    """True for --kind change-aware; --steps/--mesh/--model/--eval-every are refused for the monocular
     kind."""
     if args.kind == "change-aware":
         for flag in ("size", "blocks"):
@@ -71,7 +71,7 @@ def _change_aware(args: argparse.Namespace) -> bool:
         if getattr(args, "eval_every", 0) is None:
             args.eval_every = 100
         return True
-    for flag in ("steps", "mesh", "eval_every"):
+    for flag in ("steps", "mesh", "model", "eval_every"):
         if getattr(args, flag, None) is not None:
             raise InvalidInputError(
                 "--" + flag.replace("_", "-"), "is an option of --kind change-aware only"
@@ -413,6 +413,12 @@ def _add_finetune(sub: argparse._SubParsersAction) -> None:
         "--mesh",
         default=None,
         help="change-aware only: the CT surface mesh (PLY/STL/OBJ, mm) rendered as the prior",
+    )
+    f.add_argument(
+        "--model",
+        default=None,
+        help="change-aware only, instead of --mesh: the preoperative model (.npz, chisel "
+        "build); its surface, rendered as the updater renders it, is the prior and the target",
     )
     f.add_argument(
         "--synthetic-removal",
