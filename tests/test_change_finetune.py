@@ -90,8 +90,10 @@ def test_prior_is_the_given_surface_at_the_tracked_pose(
     assert prior.shape == (3, H, W) and np.isfinite(prior).all()
     assert np.allclose(prior, surface_z_mm - TRACKED_Z_MM, atol=1e-3)
     assert np.array_equal(seen["pairs"].target_mm.numpy(), prior)
-    command = json.loads(out.with_suffix(".json").read_text())["info"]["command"]
-    assert f"{flag} {src}" in command
+    info = json.loads(out.with_suffix(".json").read_text())["info"]
+    assert f"{flag} {src}" in info["command"]
+    surface = "model" if flag == "--model" else "ct"
+    assert info["target"] == [f"{surface}-render-tracked-pose"]
 
 
 def test_exactly_one_prior_and_change_aware_only(

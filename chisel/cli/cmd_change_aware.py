@@ -148,7 +148,8 @@ def finetune(args: argparse.Namespace) -> int:
     net, parent_info = load_change_checkpoint(parent)
     mesh = _prior_surface(args)
     seqs = [Sequence(p) for p in args.sequence]
-    parts = [preop_prior_set(s, mesh, frame_step=args.frame_step) for s in seqs]
+    surface = "model" if args.model is not None else "ct"
+    parts = [preop_prior_set(s, mesh, args.frame_step, surface=surface) for s in seqs]
     targets = sorted({what for _, what in parts})
     pairs = parts[0][0]
     if len(parts) > 1:

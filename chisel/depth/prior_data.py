@@ -240,14 +240,16 @@ def preop_prior_set(
     mesh: trimesh.Trimesh,
     frame_step: int = 1,
     target_pose: Literal["tracked", "true"] = "tracked",
+    surface: Literal["ct", "model"] = "ct",
 ) -> tuple[PriorSet, str]:
-    """Fine-tuning pairs from the preoperative sequence and the CT surface mesh.
+    """Fine-tuning pairs from the preoperative sequence and the CT surface mesh (or the
+    preoperative model's surface: ``surface`` names which ``mesh`` is, for the label).
 
     target_pose : "tracked" (default, as :func:`build_prior_set`; also all real data has):
     target = the CT render at the tracked pose = the prior (the sweep shows no change);
     "true": the CT render at the true pose, where the sequence has true poses.
     Returns the pairs and what the target is: ``"ct-render-true-pose"`` or
-    ``"ct-render-tracked-pose"``.
+    ``"ct-render-tracked-pose"`` (``"model-render-..."`` for the model's surface).
     """
     if not sequence.has_rgb:
         raise InvalidInputError(sequence.path, "fine-tuning needs the preop sequence's RGB")
@@ -257,10 +259,10 @@ def preop_prior_set(
     if target_pose == "true" and sequence.true_poses is not None:
         target, what = (
             rc.render_depths(sequence.camera, sequence.true_poses[idx]),
-            "ct-render-true-pose",
+            f"{surface}-render-true-pose",
         )
     else:
-        target, what = prior.copy(), "ct-render-tracked-pose"
+        target, what = prior.copy(), f"{surface}-render-tracked-pose"
     keep = [j for j in range(len(idx)) if np.isfinite(prior[j]).mean() >= 0.05]
     if not keep:
         raise EmptyResultError(f"{sequence.path}: the CT surface is seen in no frame")
