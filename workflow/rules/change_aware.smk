@@ -1,7 +1,8 @@
 # The change-aware depth network's row (method "change_aware", issue 20), beside the
 # paper's monocular network ("updated", which keeps its row). Active when "change_aware"
 # is listed in config "methods". Per seed: the shipped change-aware checkpoint is
-# fine-tuned on the preop sequence (prior and target: the CT surface rendered at the
+# fine-tuned on the preop sequence (prior and target: the preop model's surface, as the
+# updater renders it, or the CT surface (depth.change_aware_finetune_prior), at the
 # tracked poses, synthetic removals put into the priors; docs/depth.md), then every step
 # runs the updater with
 # --depth-source change-aware:CKPT (the model's own render M_t is the network's prior;
@@ -14,7 +15,7 @@ rule finetune_change_aware:
     """Per-patient fine-tuning of the change-aware network on the preop sequence."""
     input:
         index=rules.render.output.index,
-        surface=rules.ct_surface.output.mesh,
+        prior=change_aware_finetune_prior(),
         base=change_aware_base_checkpoint(),
     output:
         ckpt=f"{RESULTS}/seed_{{seed}}/depth/change_aware_finetuned.pt",
@@ -22,6 +23,7 @@ rule finetune_change_aware:
         f"{RESULTS}/logs/seed_{{seed}}/finetune_change_aware.log",
     params:
         steps=DC.get("change_aware_finetune_steps", 60),
+        prior_flag="--model" if DC.get("change_aware_finetune_prior", "model") == "model" else "--mesh",
     threads: 2
     conda:
         ENV
@@ -29,7 +31,7 @@ rule finetune_change_aware:
         mem_mb=MEM_MB,
     shell:
         "python -m chisel depth finetune --kind change-aware --checkpoint {input.base} "
-        "--sequence $(dirname {input.index})/preop --mesh {input.surface} --steps {params.steps} "
+        "--sequence $(dirname {input.index})/preop {params.prior_flag} {input.prior} --steps {params.steps} "
         "--seed {wildcards.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
 
 

@@ -213,6 +213,14 @@ def change_aware_base_checkpoint():
     return ck
 
 
+def change_aware_finetune_prior():
+    """config depth.change_aware_finetune_prior: the preop model, whose surface the updater
+    renders as M_t, or the CT surface mesh (docs/depth.md)."""
+    if DC.get("change_aware_finetune_prior", "model") == "model":
+        return f"{RESULTS}/seed_{{seed}}/preop/model.npz"
+    return f"{RESULTS}/seed_{{seed}}/preop/ct_surface.ply"
+
+
 def change_aware_checkpoint(wc):
     if DC.get("finetune", True):
         return f"{RESULTS}/seed_{wc.seed}/depth/change_aware_finetuned.pt"
