@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import Literal
 
 import trimesh
 
@@ -148,7 +149,7 @@ def finetune(args: argparse.Namespace) -> int:
     net, parent_info = load_change_checkpoint(parent)
     mesh = _prior_surface(args)
     seqs = [Sequence(p) for p in args.sequence]
-    surface = "model" if args.model is not None else "ct"
+    surface: Literal["ct", "model"] = "model" if args.model is not None else "ct"
     parts = [preop_prior_set(s, mesh, args.frame_step, surface=surface) for s in seqs]
     targets = sorted({what for _, what in parts})
     pairs = parts[0][0]
