@@ -101,8 +101,8 @@ def test_untrained_network_returns_the_render_exactly() -> None:
 class _FixedHead(ChangeAwarePredictor):
     """A predictor whose network outputs are given: (log-ratio correction, change logit)."""
 
-    def __init__(self, r: torch.Tensor, c: torch.Tensor) -> None:
-        super().__init__(ChangeNet(TINY))
+    def __init__(self, r: torch.Tensor, c: torch.Tensor, decision_p: float = 0.5) -> None:
+        super().__init__(ChangeNet(TINY), decision_p)
         self._r, self._c = r, c
 
     def raw(self, rgb: torch.Tensor, prior_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -120,6 +120,28 @@ def test_output_is_the_render_where_the_change_head_says_unchanged() -> None:
     expect = prior[:, W // 2 :] * torch.exp(torch.tensor(0.5) * torch.sigmoid(torch.tensor(2.0)))
     assert torch.allclose(depth[0, :, W // 2 :], expect)
     assert torch.allclose(p[0, :, W // 2 :], torch.sigmoid(torch.tensor(2.0)))
+
+
+def test_the_decision_probability_is_kept_in_the_export(tmp_path: Path) -> None:
+    """A change at p = 0.6 is applied at the default decision (0.5, the change head's own
+    boundary) and not at 0.7; a TorchScript export keeps the decision it was made with."""
+    from chisel.depth.change_aware import CHANGE_DECISION_P
+
+    pairs = wall_pairs(1, seed=6)
+    r = torch.full((1, 1, H, W), 0.5)
+    c = torch.full((1, 1, H, W), float(np.log(0.6 / 0.4)))  # p = 0.6
+    prior = pairs.prior_mm[0]
+    moved = prior * torch.exp(torch.tensor(0.5 * 0.6))
+    for decision_p, expect in ((CHANGE_DECISION_P, moved), (0.7, prior)):
+        head = _FixedHead(r, c, decision_p).eval()
+        depth, _ = head(pairs.rgb, pairs.prior_mm)
+        assert torch.allclose(depth[0], expect)
+    net = ChangeNet(TINY)
+    ts = export_change_aware(ChangeAwarePredictor(net, decision_p=0.55), tmp_path / "ts.pt")
+    assert torch.jit.load(str(ts)).decision_p == 0.55
+    for bad in (0.0, 1.0, float("nan")):
+        with pytest.raises(InvalidInputError, match="decision_p"):
+            ChangeAwarePredictor(net, decision_p=bad)
 
 
 def test_no_change_output_equals_the_render(tiny_trained: ChangeNet) -> None:

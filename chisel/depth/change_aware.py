@@ -7,7 +7,8 @@ its median, the render's validity) and predicts a per-pixel **log-ratio correcti
 the render plus a **change logit**:
 
     p_change = sigmoid(c)
-    depth_mm = prior_mm * exp(p_change * r)   where p_change >= 0.5, else prior_mm
+    depth_mm = prior_mm * exp(p_change * r)   where p_change >= CHANGE_DECISION_P (0.5),
+                                              else prior_mm
                                               (NaN where the render is invalid)
 
 The head starts at zero, so an untrained network returns the render itself; training only
@@ -156,6 +157,15 @@ class ChangeNet(nn.Module):
         return self.head(y)
 
 
+CHANGE_DECISION_P = 0.5
+"""Change probability from which the network's correction is applied (below it the
+render comes out unchanged): the boundary its cross-entropy was trained on. A higher one
+(0.7, for the asymmetry that a deletion is never undone while a missed removal stays open
+to other frames) was measured on the `table` run: on phantom seeds 0-4 the row's error
+fell (0.282 -> 0.244 of no update), on held-out seeds 5-7 it rose (0.226 -> 0.236) and
+the removed-tissue Dice fell on both (docs/results.md). Not taken."""
+
+
 class ChangeAwarePredictor(nn.Module):
     """uint8 RGB and the render in, metric depth and change probability out.
 
@@ -163,14 +173,19 @@ class ChangeAwarePredictor(nn.Module):
       rgb : (B, H, W, 3) uint8 (or float in [0, 255]); prior_mm : (B, H, W) float32 z-depth
       of the model's render at the tracked pose, mm, NaN (or <= 0) = invalid.
       Returns ``(depth_mm, p_change)``, both (B, H, W) float32: depth = prior *
-      exp(p_change * r) where p_change >= 0.5, else the prior; NaN where the render is
-      invalid; p_change in [0, 1].
+      exp(p_change * r) where p_change >= ``decision_p``, else the prior; NaN where the
+      render is invalid; p_change in [0, 1].
+    decision_p : :data:`CHANGE_DECISION_P` by default; kept in the scripted module, so an
+      export carries the decision it was made with.
     This is the module that is scripted, exported (TorchScript) and run.
     """
 
-    def __init__(self, net: ChangeNet) -> None:
+    def __init__(self, net: ChangeNet, decision_p: float = CHANGE_DECISION_P) -> None:
         super().__init__()
+        if not 0.0 < decision_p < 1.0:
+            raise InvalidInputError("decision_p", f"must be in (0, 1), got {decision_p}")
         self.net = net
+        self.decision_p = float(decision_p)
         cfg = net.config
         self.kind = KIND
         self.stride = int(cfg.stride)
@@ -238,10 +253,10 @@ class ChangeAwarePredictor(nn.Module):
         # The correction is applied in proportion to the change probability: where the
         # network is sure nothing changed, the render comes out as it is (held-out
         # phantoms: unchanged abs-rel 0.011 -> 0.004, mask precision 0.36 -> 0.83). Where
-        # its change head decides "unchanged" (p < 0.5) the render comes out unchanged:
-        # a soft gate alone let large corrections through at p 0.2-0.5, which flagged
-        # unchanged tissue (docs/depth.md).
-        corrected = torch.where(p >= 0.5, prior * torch.exp(r[:, 0] * p), prior)
+        # its change head decides "unchanged" (p < decision_p) the render comes out
+        # unchanged: a soft gate alone let large corrections through at p 0.2-0.5, which
+        # flagged unchanged tissue (docs/depth.md).
+        corrected = torch.where(p >= self.decision_p, prior * torch.exp(r[:, 0] * p), prior)
         depth = torch.where(valid, corrected, torch.full_like(prior, float("nan")))
         return depth, p
 
