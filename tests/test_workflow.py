@@ -50,6 +50,23 @@ def test_bad_config_is_refused(tmp_path: Path) -> None:
     assert "bites" in r.stdout + r.stderr
 
 
+@pytest.mark.parametrize(
+    ("prior", "expect"),
+    [("ct_surface", "--mesh results/default/seed_0/preop/ct_surface.ply"),
+     ("model", "--model results/default/seed_0/preop/model.npz")],
+)  # fmt: skip
+def test_change_aware_finetune_prior_reaches_the_command(
+    tmp_path: Path, prior: str, expect: str
+) -> None:
+    cfg = tmp_path / "prior.yaml"
+    cfg.write_text(yaml.safe_dump({"depth": {"change_aware_finetune_prior": prior}}))
+    configs = ["--configfile", str(ROOT / "config" / "config.yaml"), str(cfg)]
+    r = run(["-n", "-p", "--cores", "2", *configs], tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    finetune = [ln for ln in r.stdout.splitlines() if "depth finetune --kind change-aware" in ln]
+    assert finetune and all(expect in ln for ln in finetune), finetune
+
+
 def test_render_sim_section_reaches_sim_render_which_checks_it(tmp_path: Path) -> None:
     cfg = tmp_path / "sim.yaml"
     cfg.write_text(yaml.safe_dump({"render": {"sim": {"tools": {"fraction": 1.5}}}}))

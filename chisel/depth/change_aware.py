@@ -162,8 +162,8 @@ CHANGE_DECISION_P = 0.5
 render comes out unchanged): the boundary its cross-entropy was trained on. A higher one
 (0.7, for the asymmetry that a deletion is never undone while a missed removal stays open
 to other frames) was measured on the `table` run: on phantom seeds 0-4 the row's error
-fell (0.282 -> 0.244 of no update), on held-out seeds 5-7 it rose (0.226 -> 0.236) and
-the removed-tissue Dice fell on both (docs/results.md). Not taken."""
+fell (0.282 -> 0.244 of no update), on held-out seeds 5-7 it rose (0.226 -> 0.236), and
+the removed-tissue Dice fell on both (docs/results.md, thirteenth session). Not taken."""
 
 
 class ChangeAwarePredictor(nn.Module):

@@ -1,9 +1,9 @@
 # The change-aware depth network's row (method "change_aware", issue 20), beside the
 # paper's monocular network ("updated", which keeps its row). Active when "change_aware"
 # is listed in config "methods". Per seed: the shipped change-aware checkpoint is
-# fine-tuned on the preop sequence (prior and target: the preop model's surface, as the
-# updater renders it, or the CT surface (depth.change_aware_finetune_prior), at the
-# tracked poses, synthetic removals put into the priors; docs/depth.md), then every step
+# fine-tuned on the preop sequence (prior and target: the CT surface, or the preop model's
+# surface as the updater renders it (depth.change_aware_finetune_prior), at the tracked
+# poses, synthetic removals put into the priors; docs/depth.md), then every step
 # runs the updater with
 # --depth-source change-aware:CKPT (the model's own render M_t is the network's prior;
 # registration on, as for "updated"). Its paths use the literal method name, so the
@@ -15,7 +15,7 @@ rule finetune_change_aware:
     """Per-patient fine-tuning of the change-aware network on the preop sequence."""
     input:
         index=rules.render.output.index,
-        prior=change_aware_finetune_prior(),
+        prior=change_aware_finetune_prior()[0],
         base=change_aware_base_checkpoint(),
     output:
         ckpt=f"{RESULTS}/seed_{{seed}}/depth/change_aware_finetuned.pt",
@@ -23,7 +23,7 @@ rule finetune_change_aware:
         f"{RESULTS}/logs/seed_{{seed}}/finetune_change_aware.log",
     params:
         steps=DC.get("change_aware_finetune_steps", 60),
-        prior_flag="--model" if DC.get("change_aware_finetune_prior", "model") == "model" else "--mesh",
+        prior_flag=change_aware_finetune_prior()[1],
     threads: 2
     conda:
         ENV
