@@ -121,24 +121,24 @@ def train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _prior_surface(args: argparse.Namespace) -> trimesh.Trimesh:
-    """The surface rendered as the fine-tuning prior (and target).
+def _prior_surface(args: argparse.Namespace) -> tuple[trimesh.Trimesh, Literal["ct", "model"]]:
+    """The surface rendered as the fine-tuning prior (and target), and which it is.
 
     --model: the preoperative model's surface as the updater renders M_t (marching cubes
-    of the TSDF), so the network is fine-tuned on the prior it is given in use: a voxel-
-    sized, smoothed copy of the CT surface whose thin lamellae can be thicker, holed or
-    missing. Trained on mesh priors alone it reads those differences as change.
+    of the TSDF, :class:`chisel.render.ModelRenderer`), so the network is fine-tuned on the
+    prior it is given in use: a voxel-sized, smoothed copy of the CT surface whose thin
+    lamellae can be thicker, holed or missing.
     """
     if args.model is not None:
+        from chisel.mesh import extract_mesh  # noqa: PLC0415
         from chisel.model import TsdfModel  # noqa: PLC0415
-        from chisel.render import ModelRenderer  # noqa: PLC0415
 
-        return ModelRenderer(TsdfModel.load(args.model)).mesh
-    return read_mesh_file(args.mesh, "--mesh", READABLE_MESH_SUFFIXES)
+        return extract_mesh(TsdfModel.load(args.model), with_color=False), "model"
+    return read_mesh_file(args.mesh, "--mesh", READABLE_MESH_SUFFIXES), "ct"
 
 
 def finetune(args: argparse.Namespace) -> int:
-    """``chisel depth finetune --kind change-aware --mesh CT_SURFACE``."""
+    """``chisel depth finetune --kind change-aware --mesh CT_SURFACE | --model PREOP_MODEL``."""
     if (args.mesh is None) == (args.model is None):
         raise InvalidInputError(
             "--mesh/--model",
@@ -147,9 +147,8 @@ def finetune(args: argparse.Namespace) -> int:
         )
     parent = Path(args.checkpoint)
     net, parent_info = load_change_checkpoint(parent)
-    mesh = _prior_surface(args)
+    mesh, surface = _prior_surface(args)
     seqs = [Sequence(p) for p in args.sequence]
-    surface: Literal["ct", "model"] = "model" if args.model is not None else "ct"
     parts = [preop_prior_set(s, mesh, args.frame_step, surface=surface) for s in seqs]
     targets = sorted({what for _, what in parts})
     pairs = parts[0][0]

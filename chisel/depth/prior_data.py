@@ -265,7 +265,8 @@ def preop_prior_set(
         target, what = prior.copy(), f"{surface}-render-tracked-pose"
     keep = [j for j in range(len(idx)) if np.isfinite(prior[j]).mean() >= 0.05]
     if not keep:
-        raise EmptyResultError(f"{sequence.path}: the CT surface is seen in no frame")
+        what_surface = "CT surface" if surface == "ct" else "model's surface"
+        raise EmptyResultError(f"{sequence.path}: the {what_surface} is seen in no frame")
     rgb = []
     for j in keep:
         mask = sequence.mask(idx[j])
