@@ -308,6 +308,7 @@ def _mask_inputs(
     camera = cseq.camera
     gt_cache: dict[bytes, np.ndarray] = {}
     starts: dict[str, trimesh.Trimesh] = {}  # at step 1 every method starts from one model
+    start_depths: dict[tuple[str, bytes], np.ndarray] = {}  # ... and its masks share poses
     out: dict[str, ChangeMaskInput] = {}
     for name, p in change_mask_paths.items():
         if name not in method_names:
@@ -326,9 +327,9 @@ def _mask_inputs(
         start_path = str(start_surface_paths[name])
         if start_path not in starts:
             starts[start_path] = load_start_surface(start_path, f"start surface of {name!r}")
-        truth = true_change_masks_from_depths(
-            render_depths(starts[start_path], camera, poses), gt_cache[key]
-        )
+        if (start_path, key) not in start_depths:
+            start_depths[start_path, key] = render_depths(starts[start_path], camera, poses)
+        truth = true_change_masks_from_depths(start_depths[start_path, key], gt_cache[key])
         out[name] = ChangeMaskInput(pred, truth, cseq.camera_mask)
     return out
 
