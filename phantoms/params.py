@@ -102,7 +102,9 @@ TARGETS: tuple[str, ...] = ("uncinate", "bulla", "basal_lamella")
 """Lamellae a bite plan can target; each is the airway-facing wall of one air cell."""
 
 
-def sample_params(seed: int, overrides: dict[str, float] | None = None) -> dict[str, float]:
+def sample_params(
+    seed: int, overrides: dict[str, float] | None = None, draw: int = 0
+) -> dict[str, float]:
     """Draw every shape parameter uniformly inside its range, then apply ``overrides``.
 
     Parameters
@@ -113,13 +115,18 @@ def sample_params(seed: int, overrides: dict[str, float] | None = None) -> dict[
     overrides : dict, optional
         ``{name: value}``; each name must be in :data:`PARAM_RANGES` and each value
         inside its range.
+    draw : int, optional
+        Which of the seed's independent draws (0, the default, is the seed's first; the
+        generator takes the next when an anatomy has no airway for the endoscope).
 
     Returns
     -------
     dict of str -> float (int for :data:`INTEGER_PARAMS`), in the order of the ranges.
     """
     check_seed(seed)
-    rng = np.random.default_rng([int(seed), 0x5A1])
+    if int(draw) < 0:
+        raise ValueError(f"draw must be >= 0, got {draw}")
+    rng = np.random.default_rng([int(seed), 0x5A1] + ([int(draw)] if draw else []))
     params: dict[str, float] = {}
     for name, (lo, hi, _) in PARAM_RANGES.items():
         if name in INTEGER_PARAMS:
