@@ -296,6 +296,16 @@ def render_seed(phantom_seed: int, master_seed: int) -> int:
     return int(np.random.SeedSequence([int(master_seed), int(phantom_seed)]).generate_state(1)[0])
 
 
+def seed_config(cfg: SimConfig, phantom_seed: int) -> SimConfig:
+    """The configuration one phantom of a dataset is rendered with: randomisation on
+    (drawn by :func:`sim.pipeline.render_phantom`) and the seed :func:`render_seed`."""
+    return dataclasses.replace(
+        cfg,
+        seed=render_seed(phantom_seed, cfg.seed),
+        randomization=dataclasses.replace(cfg.randomization, enabled=True),
+    )
+
+
 def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
     flat: dict[str, Any] = {}
@@ -383,12 +393,12 @@ def build_dataset(
     if out.exists() and not out.is_dir():
         raise ConfigError(out, "the dataset folder exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
+    seq_cfgs = {s: seed_config(cfg, s) for s in seeds}
     cfg = dataclasses.replace(
         cfg, randomization=dataclasses.replace(cfg.randomization, enabled=True)
     )
     entries: list[dict[str, Any]] = []
     renders: dict[int, dict[str, Any]] = {}
-    seq_cfgs = {s: dataclasses.replace(cfg, seed=render_seed(s, cfg.seed)) for s in seeds}
     finished = {
         s: (
             _finished_render(out / f"seed_{s}" / "render.json", seq_cfgs[s], bites)

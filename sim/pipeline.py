@@ -23,6 +23,7 @@ import dataclasses
 import gc
 import json
 import logging
+from collections.abc import Iterator
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +46,7 @@ from sim.errors import PhantomError
 from sim.materials import SharedMaterials
 from sim.paths import PathTarget, check_clearance, eval_poses, intraop_path, preop_sweep
 from sim.phantom import Phantom, load_mesh, load_phantom
-from sim.render import MeshRenderer
+from sim.render import MeshRenderer, RenderedFrame
 from sim.tools import ToolSet, ToolTrack, plan_tool_track, tool_set
 from sim.tracking import tracked_poses
 
@@ -174,6 +175,20 @@ def frame_effects(
     )
 
 
+def sequence_frames(renderer: MeshRenderer, seq: PlannedSequence) -> Iterator[RenderedFrame]:
+    """The colour frames of ``seq`` as :func:`render_sequence` renders them (instruments,
+    and for intraoperative sequences the effects), one at a time, nothing written."""
+    n = len(seq.true_poses)
+    cfg = renderer.cfg
+    effects_on = seq.kind == "intraop" and not renderer.depth_only
+    smears = smear_schedule(n, cfg.lens, seq.seed) if effects_on else np.full(n, -1)
+    track = seq.tools
+    for i in range(n):
+        fx = frame_effects(cfg, seq, i, int(smears[i])) if effects_on else None
+        tool = None if track is None else (int(track.kind[i]), track.T_world_from_tool[i])
+        yield renderer.render(seq.true_poses[i], index=i, seed=seq.seed, tool=tool, effects=fx)
+
+
 def render_sequence(
     renderer: MeshRenderer,
     seq: PlannedSequence,
@@ -188,9 +203,6 @@ def render_sequence(
     """
     cam = renderer.camera
     n = len(seq.true_poses)
-    cfg = renderer.cfg
-    effects_on = seq.kind == "intraop" and not renderer.depth_only
-    smears = smear_schedule(n, cfg.lens, seq.seed) if effects_on else np.full(n, -1)
     track = seq.tools
     extras = out_dir.parent / f".{out_dir.name}.tools.tmp" if track is not None else None
     if extras is not None:
@@ -200,12 +212,7 @@ def render_sequence(
     if track is not None:
         assert extras is not None  # made above whenever there is a tool track
         with SequenceWriter(out_dir, cam, meta=meta, camera_mask=renderer.field_stop) as w:
-            for i in range(n):
-                tool = (int(track.kind[i]), track.T_world_from_tool[i])
-                fx = frame_effects(cfg, seq, i, int(smears[i])) if effects_on else None
-                f = renderer.render(
-                    seq.true_poses[i], index=i, seed=seq.seed, tool=tool, effects=fx
-                )
+            for i, f in enumerate(sequence_frames(renderer, seq)):
                 assert f.tool_mask is not None and f.depth_visible_mm is not None
                 name = f"{i:06d}"
                 np.save(extras / "depth_visible" / f"{name}.npy", depth_to_disk(f.depth_visible_mm))
@@ -254,9 +261,7 @@ def render_sequence(
                     )
                 bar.update(len(depths))
         else:
-            for i in range(n):
-                fx = frame_effects(cfg, seq, i, int(smears[i])) if effects_on else None
-                f = renderer.render(seq.true_poses[i], index=i, seed=seq.seed, effects=fx)
+            for i, f in enumerate(sequence_frames(renderer, seq)):
                 w.add(Frame(i, seq.tracked[i], f.rgb, f.depth_mm, f.valid, seq.true_poses[i]))
                 bar.update(1)
     bar.close()
@@ -327,6 +332,71 @@ def drawn_config(cfg: SimConfig) -> SimConfig:
     )
 
 
+@dataclass
+class PhantomScene:
+    """What every step's renderer of one phantom shares, and the sequences to render:
+    :func:`render_phantom` renders them, ``benchmarks/bench_dataset.py`` times the same
+    renderers alone."""
+
+    cfg: SimConfig
+    """The drawn configuration (:func:`drawn_config`)."""
+    meshes: list[trimesh.Trimesh]
+    cuts: list[np.ndarray | None]
+    """Per step, the cut-face labels in use (None: none, ``cut`` off or depth only)."""
+    films: list[np.ndarray | None]
+    """Per step, the blood film's per-face coverage (:func:`blood_films`)."""
+    texture: TextureVolume | None
+    cut_texture: TextureVolume | None
+    tools: ToolSet | None
+    planned: list[PlannedSequence]
+    shared: SharedMaterials
+    """One tissue BSDF and packed texture for every step."""
+
+    @classmethod
+    def build(
+        cls,
+        phantom: Phantom,
+        cfg: SimConfig,
+        include_eval: bool = True,
+        texture: TextureVolume | None = None,
+    ) -> PhantomScene:
+        """Meshes, labels, textures and planned paths of ``phantom`` under the drawn
+        ``cfg``; raises before anything is rendered if a path cannot be built."""
+        meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
+        labels = [load_cut_faces(phantom, k, len(m.faces)) for k, m in enumerate(meshes)]
+        films = blood_films(cfg, meshes, labels)
+        cuts = labels if cfg.cut.enabled and not cfg.depth_only else [None] * len(meshes)
+        tools = tool_set(cfg.tools, cfg.seed) if cfg.tools.enabled else None
+        planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval, tools=tools)
+        if texture is None and not cfg.depth_only:
+            texture = texture_volume(_texture_box(meshes[0]), cfg.appearance, cfg.seed)
+        cut_texture = None
+        if any(c is not None and c.any() for c in cuts):
+            cut_texture = cut_texture_volume(_texture_box(meshes[0]), cfg, cfg.seed)
+        return cls(
+            cfg, meshes, cuts, films, texture, cut_texture, tools, planned, SharedMaterials()
+        )
+
+    def step_renderer(self, k: int) -> MeshRenderer:
+        """The renderer of step ``k``'s mesh (instruments only if a sequence on it has a
+        track)."""
+        cfg = self.cfg
+        step_tools = (
+            self.tools if any(p.tools is not None for p in self.planned if p.step == k) else None
+        )
+        return MeshRenderer(
+            self.meshes[k],
+            cfg,
+            self.texture,
+            depth_only=cfg.depth_only,
+            cut_faces=self.cuts[k],
+            cut_texture=self.cut_texture,
+            tools=step_tools,
+            blood_weight=self.films[k],
+            shared=self.shared,
+        )
+
+
 def render_phantom(
     phantom_dir: str | Path,
     out_dir: str | Path,
@@ -348,18 +418,9 @@ def render_phantom(
     cfg = drawn_config(cfg)
     phantom = load_phantom(phantom_dir, allow_outside=allow_outside_phantom)
     check_output_outside(out_dir, phantom.path, *{Path(s.mesh_path).parent for s in phantom.steps})
-    meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
-    labels = [load_cut_faces(phantom, k, len(m.faces)) for k, m in enumerate(meshes)]
-    films = blood_films(cfg, meshes, labels)
-    cuts = labels if cfg.cut.enabled and not cfg.depth_only else [None] * len(meshes)
-    tools = tool_set(cfg.tools, cfg.seed) if cfg.tools.enabled else None
-    planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval, tools=tools)
+    scene = PhantomScene.build(phantom, cfg, include_eval=include_eval, texture=texture)
+    planned, meshes = scene.planned, scene.meshes
     variant = choose_variant(cfg.variant)
-    if texture is None and not cfg.depth_only:
-        texture = texture_volume(_texture_box(meshes[0]), cfg.appearance, cfg.seed)
-    cut_texture = None
-    if any(c is not None and c.any() for c in cuts):
-        cut_texture = cut_texture_volume(_texture_box(meshes[0]), cfg, cfg.seed)
     sequences: dict[str, Any] = {"preop": "preop", "steps": {}, "eval": {}}
     for p in planned:
         if p.kind == "intraop":
@@ -381,25 +442,13 @@ def render_phantom(
         "config": config_to_dict(cfg),
     }
     out = Path(out_dir)
-    shared = SharedMaterials()  # one tissue BSDF and packed texture for every step
     with atomic_dir(out, "render.json") as tmp:
         (tmp / "eval").mkdir()
-        for k, mesh in enumerate(meshes):
+        for k in range(len(meshes)):
             todo = [p for p in planned if p.step == k]
             if not todo:
                 continue
-            step_tools = tools if any(p.tools is not None for p in todo) else None
-            renderer = MeshRenderer(
-                mesh,
-                cfg,
-                texture,
-                depth_only=cfg.depth_only,
-                cut_faces=cuts[k],
-                cut_texture=cut_texture,
-                tools=step_tools,
-                blood_weight=films[k],
-                shared=shared,
-            )
+            renderer = scene.step_renderer(k)
             for p in todo:
                 meta = {
                     "source": "sim",
@@ -415,10 +464,10 @@ def render_phantom(
                     if p.kind == "eval"
                     else "tracked poses",
                     "tracking": config_to_dict(cfg)["tracking"] if p.kind != "eval" else None,
-                    "cut_faces": 0 if (cut := cuts[k]) is None else int(cut.sum()),
+                    "cut_faces": 0 if (cut := scene.cuts[k]) is None else int(cut.sum()),
                     "tools": p.tools is not None,
                 }
-                if (film := films[k]) is not None:
+                if (film := scene.films[k]) is not None:
                     meta["blood_faces"] = int((film > 0).sum())
                 render_sequence(renderer, p, tmp / p.name, meta, progress=progress)
             del renderer
