@@ -365,7 +365,9 @@ class PhantomScene:
         meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
         labels = [load_cut_faces(phantom, k, len(m.faces)) for k, m in enumerate(meshes)]
         films = blood_films(cfg, meshes, labels)
-        cuts = labels if cfg.cut.enabled and not cfg.depth_only else [None] * len(meshes)
+        cuts: list[np.ndarray | None] = (
+            labels if cfg.cut.enabled and not cfg.depth_only else [None] * len(meshes)
+        )
         tools = tool_set(cfg.tools, cfg.seed) if cfg.tools.enabled else None
         planned = plan_sequences(phantom, meshes, cfg, include_eval=include_eval, tools=tools)
         if texture is None and not cfg.depth_only:
