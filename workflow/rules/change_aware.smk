@@ -11,11 +11,20 @@
 # live in common.smk.
 
 
+# depth.change_aware_finetune_prior (schema default ct_surface): the prior the network is
+# fine-tuned on, the CT surface mesh or the preop model whose surface the updater renders
+# as M_t (docs/depth.md: measured neutral to slightly worse, so not the default).
+if DC.get("change_aware_finetune_prior", "ct_surface") == "model":
+    CA_FINETUNE_PRIOR, CA_FINETUNE_FLAG = rules.preop_model.output.model, "--model"
+else:
+    CA_FINETUNE_PRIOR, CA_FINETUNE_FLAG = rules.ct_surface.output.mesh, "--mesh"
+
+
 rule finetune_change_aware:
     """Per-patient fine-tuning of the change-aware network on the preop sequence."""
     input:
         index=rules.render.output.index,
-        prior=change_aware_finetune_prior()[0],
+        prior=CA_FINETUNE_PRIOR,
         base=change_aware_base_checkpoint(),
     output:
         ckpt=f"{RESULTS}/seed_{{seed}}/depth/change_aware_finetuned.pt",
@@ -23,7 +32,7 @@ rule finetune_change_aware:
         f"{RESULTS}/logs/seed_{{seed}}/finetune_change_aware.log",
     params:
         steps=DC.get("change_aware_finetune_steps", 60),
-        prior_flag=change_aware_finetune_prior()[1],
+        prior_flag=CA_FINETUNE_FLAG,
     threads: 2
     conda:
         ENV

@@ -213,16 +213,6 @@ def change_aware_base_checkpoint():
     return ck
 
 
-def change_aware_finetune_prior():
-    """config depth.change_aware_finetune_prior (schema default ct_surface): the prior the
-    change-aware network is fine-tuned on, as (file pattern, `chisel depth finetune` flag):
-    the CT surface mesh, or the preop model whose surface the updater renders as M_t
-    (docs/depth.md: measured neutral to slightly worse, so not the default)."""
-    if DC.get("change_aware_finetune_prior", "ct_surface") == "model":
-        return f"{RESULTS}/seed_{{seed}}/preop/model.npz", "--model"
-    return f"{RESULTS}/seed_{{seed}}/preop/ct_surface.ply", "--mesh"
-
-
 def change_aware_checkpoint(wc):
     if DC.get("finetune", True):
         return f"{RESULTS}/seed_{wc.seed}/depth/change_aware_finetuned.pt"
