@@ -173,9 +173,9 @@ def build_phantom(
                 target,
             )
         except AnatomyError as exc:
+            if draws == 1:
+                raise
             if draw + 1 == draws:
-                if draws == 1:
-                    raise
                 raise AnatomyError(
                     exc.source,
                     f"{exc.problem} (seed {config.seed}: none of {draws} anatomy draws has one)",
