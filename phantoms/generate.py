@@ -56,13 +56,16 @@ from phantoms.procedures import (
     plan_allowed_region,
     plan_procedure,
 )
+from phantoms.regime import REGIME_WINDOWS, view_change_mm
 from phantoms.roi import change_box
 
 log = logging.getLogger(__name__)
 
-MAX_ANATOMY_DRAWS = 8
+MAX_ANATOMY_DRAWS = 16
 """Parameter draws a seed gets for an anatomy whose airway takes the endoscope to the
-target (4 of seeds 0-129 need a second, 25, 56, 83 and 126; none a third)."""
+target (4 of seeds 0-129 need a second for that alone: 25, 56, 83 and 126) and, with a
+procedure that has a :data:`~phantoms.regime.REGIME_WINDOWS` entry, whose surgery is
+specimen-sized."""
 
 FORMAT = "endoscopic-chisel/phantom"
 VERSION = 1
@@ -118,6 +121,12 @@ class Phantom:
     """(N, 3) float64, mm."""
     anatomy_draw: int = 0
     """Which of the seed's parameter draws this anatomy is (:data:`MAX_ANATOMY_DRAWS`)."""
+    view_change_mm: tuple[float, ...] = ()
+    """Per step, how far the surgery moves the surface the endoscope sees in the change box
+    (:func:`phantoms.regime.view_change_mm`), mm."""
+    regime_met: bool | None = None
+    """Whether that is inside the procedure's :data:`~phantoms.regime.REGIME_WINDOWS`
+    window (None: the procedure has none, or the plan was given)."""
 
 
 def _plan_fragment(entry, target: str) -> Fragment:
@@ -153,11 +162,61 @@ def build_phantom(
     ProcedureError, UnknownTargetError, AnatomyError, ParameterRangeError
     """
     note = progress or (lambda _msg: None)
-    # An anatomy whose airway is too narrow for the endoscope to reach the target is a
-    # draw the generator cannot use: the procedure's own plan then draws the shape
-    # parameters again from the seed's next stream (deterministic; draw 0 is the seed's
-    # first). An explicit plan was made for one anatomy and keeps it.
+    d = _draw_anatomy(config, bites, plan_source, note)
+    # an explicit plan is a list of bites, whatever the procedure
+    step_name = "bite" if config.procedure == "bites" or bites is not None else "fragment"
+    grid, steps = _voxelise_steps(config, d.anatomy, d.fragments, d.results, step_name, note)
+    return Phantom(
+        config=config,
+        params=d.params,
+        anatomy=d.anatomy,
+        target=d.target,
+        bites=tuple(f.bites[0] for f in d.fragments if f.bites),
+        steps=tuple(steps),
+        grid=grid,
+        roi_min_mm=d.box_mm[0],
+        roi_max_mm=d.box_mm[1],
+        airway_path_mm=d.path,
+        anatomy_draw=d.draw,
+        view_change_mm=tuple(d.view_change_mm),
+        regime_met=d.regime_met,
+    )
+
+
+@dataclass(frozen=True)
+class _Draw:
+    """One anatomy draw with its plan, airway path, change box and view of the change."""
+
+    draw: int
+    params: dict
+    anatomy: Anatomy
+    target: Target
+    fragments: list[Fragment]
+    results: list[StepCut]
+    path: np.ndarray
+    box_mm: tuple[np.ndarray, np.ndarray]
+    view_change_mm: list[float]
+    regime_met: bool | None
+
+
+def _draw_anatomy(
+    config: PhantomConfig, bites: list | None, plan_source: str, note: Callable[[str], None]
+) -> _Draw:
+    """The seed's anatomy, its plan, airway path and change box.
+
+    An anatomy the generator cannot use is drawn again from the seed's next stream
+    (``sample_params(seed, draw=k)``; draw 0 is the seed's first), at most
+    :data:`MAX_ANATOMY_DRAWS` times, with the procedure's own plan only (an explicit plan
+    was made for one anatomy and keeps it): one whose airway is too narrow for the
+    endoscope to reach the target (an error when no draw has one), and, for a procedure
+    with a :data:`~phantoms.regime.REGIME_WINDOWS` entry, one whose surgery looks smaller
+    or larger to the endoscope than the specimen's (when no draw is inside the window, the
+    draw nearest to it, with ``regime_met`` False and a warning).
+    """
     draws = MAX_ANATOMY_DRAWS if bites is None else 1
+    window = REGIME_WINDOWS.get(config.procedure) if bites is None else None
+    best: _Draw | None = None
+    airway_error: AnatomyError | None = None
     for draw in range(draws):
         params = sample_params(config.seed, config.overrides, draw=draw)
         anatomy = build_anatomy(params, config.seed, config.mesh_edge_mm)
@@ -175,40 +234,46 @@ def build_phantom(
         except AnatomyError as exc:
             if draws == 1:
                 raise
-            if draw + 1 == draws:
-                raise AnatomyError(
-                    exc.source,
-                    f"{exc.problem} (seed {config.seed}: none of {draws} anatomy draws has one)",
-                ) from None
+            airway_error = exc
             log.info("seed %d, anatomy draw %d: %s; drawing again", config.seed, draw, exc)
             continue
         note("airway path")
-        break
-    # an explicit plan is a list of bites, whatever the procedure
-    step_name = "bite" if config.procedure == "bites" or bites is not None else "fragment"
-    grid, steps = _voxelise_steps(config, anatomy, fragments, results, step_name, note)
-    roi_lo, roi_hi, _ = change_box(
-        anatomy.tissue,
-        results[-1].tissue,
-        path[-1],
-        np.asarray(target.center_mm),
-        np.asarray(target.normal),
-        config.roi_margin_mm,
-    )
-    note("change box")
-    return Phantom(
-        config=config,
-        params=params,
-        anatomy=anatomy,
-        target=target,
-        bites=tuple(f.bites[0] for f in fragments if f.bites),
-        steps=tuple(steps),
-        grid=grid,
-        roi_min_mm=roi_lo,
-        roi_max_mm=roi_hi,
-        airway_path_mm=path,
-        anatomy_draw=draw,
-    )
+        center, normal = np.asarray(target.center_mm), np.asarray(target.normal)
+        lo, hi, _ = change_box(
+            anatomy.tissue, results[-1].tissue, path[-1], center, normal, config.roi_margin_mm
+        )
+        note("change box")
+        view = view_change_mm(
+            anatomy.tissue, [r.tissue for r in results], (lo, hi), path[-1], center, normal
+        )
+        miss = window.miss(view) if window is not None else ""
+        d = _Draw(
+            draw, params, anatomy, target, fragments, results, path, (lo, hi), view,
+            None if window is None else not miss,
+        )  # fmt: skip
+        if not miss:
+            return d
+        assert window is not None
+        log.info(
+            "seed %d, anatomy draw %d: the surgery's view %s; drawing again",
+            config.seed,
+            draw,
+            miss,
+        )
+        if best is None or window.distance(view) < window.distance(best.view_change_mm):
+            best = d
+    if best is None:
+        assert airway_error is not None
+        raise AnatomyError(
+            airway_error.source,
+            f"{airway_error.problem} (seed {config.seed}: none of {draws} anatomy draws has one)",
+        )
+    log.warning(
+        "seed %d: none of %d anatomy draws gives a specimen-sized %s (view of the change %s "
+        "mm); keeping draw %d, the nearest", config.seed, draws, config.procedure,
+        [round(v, 2) for v in best.view_change_mm], best.draw,
+    )  # fmt: skip
+    return best
 
 
 def _cut_plan(
@@ -365,6 +430,10 @@ def manifest(ph: Phantom) -> dict:
             "seed": ph.config.seed,
             "anatomy_draw": ph.anatomy_draw,
             "procedure": ph.config.procedure,
+            # how large the surgery looks to the endoscope, and whether the draw is
+            # specimen-sized (phantoms.regime; null: the procedure has no window)
+            "view_change_mm": [None if v != v else v for v in ph.view_change_mm],
+            "regime_met": ph.regime_met,
             "params": params,
             "param_ranges": {k: [lo, hi] for k, (lo, hi, _) in PARAM_RANGES.items()},
             "world_frame": WORLD_FRAME,
