@@ -12,7 +12,8 @@ preoperative surface is the phantom's true step-0 mesh rather than the model bui
 the CT (which adds its own ~0.2 mm).
 
 Prints ``name: value`` lines: ``seed_S_step_K_mm`` for every seed and step, per-seed
-``seed_S_ok`` (the goal: >= 1.0 mm at step 1, 3-8 mm at step 5, rising at every step),
+``seed_S_anatomy_draw`` and ``seed_S_view_change_last_mm`` (the generator's own figure of
+the last step, :mod:`phantoms.regime`, by which it drew the anatomy), ``seed_S_ok`` (the goal: >= 1.0 mm at step 1, 3-8 mm at step 5, rising at every step),
 ``cpu_simd``, ``elapsed_s``, and last ``no_update_step5_mm_median``.
 
     .venv/bin/python benchmarks/bench_regime.py [--seeds 0-9] [--procedure uncinectomy]
@@ -107,6 +108,7 @@ def main() -> None:
     t0 = time.perf_counter()
     step5: list[float] = []
     failed_seeds: list[int] = []
+    missed: list[int] = []
     print(f"cpu_simd: {cpu_simd()}")
     print(f"procedure: {args.procedure}")
     print(f"image: {rc['width']}x{rc['height']}")
@@ -137,12 +139,21 @@ def main() -> None:
             for k, (e, r) in enumerate(zip(errors, removed, strict=True), start=1):
                 print(f"seed_{seed}_step_{k}_mm: {e:.3f}")
                 print(f"seed_{seed}_step_{k}_removed_mm3: {r:.1f}")
+            # which anatomy draw the generator kept, and its own figure of the change
+            # (phantoms.regime), beside the benchmark's
+            print(f"seed_{seed}_anatomy_draw: {manifest['anatomy_draw']}")
+            view = manifest.get("view_change_mm") or []
+            if view and view[-1] is not None:
+                print(f"seed_{seed}_view_change_last_mm: {view[-1]:.3f}")
             print(f"seed_{seed}_ok: {goal_met(errors)}")
+            if not goal_met(errors):
+                missed.append(seed)
             print(f"seed_{seed}_s: {time.perf_counter() - ts:.1f}")
             sys.stdout.flush()
             step5.append(errors[4] if len(errors) >= 5 else errors[-1])
     print(f"elapsed_s: {time.perf_counter() - t0:.1f}")
     print(f"seeds_without_phantom: {len(failed_seeds)}")
+    print(f"seeds_missing_goal: {len(missed)} {missed}")
     print(f"no_update_step5_mm_median: {float(np.median(step5)) if step5 else float('nan'):.3f}")
 
 

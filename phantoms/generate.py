@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import sys
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import manifold3d as m3d
@@ -183,6 +183,14 @@ def build_phantom(
     )
 
 
+def draw_seed(seed: int, draw: int) -> int:
+    """The seed that a draw's anatomy and plan use: the phantom seed itself for draw 0 (so a
+    seed's first draw is what it always was), an independent 31-bit seed for later ones."""
+    if draw == 0:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), 0xD5A, int(draw)]).generate_state(1)[0] >> 1)
+
+
 @dataclass(frozen=True)
 class _Draw:
     """One anatomy draw with its plan, airway path, change box and view of the change."""
@@ -219,9 +227,15 @@ def _draw_anatomy(
     airway_error: AnatomyError | None = None
     for draw in range(draws):
         params = sample_params(config.seed, config.overrides, draw=draw)
-        anatomy = build_anatomy(params, config.seed, config.mesh_edge_mm)
+        # A later draw is a new anatomy throughout: its airway undulation, ethmoid cells
+        # and the procedure's plan come from streams of their own too (shape parameters
+        # alone left most of a seed's draws alike: seeds needed up to 11 to fit the window).
+        stream = draw_seed(config.seed, draw)
+        anatomy = build_anatomy(params, stream, config.mesh_edge_mm)
         note("anatomy")
-        target, fragments, results = _cut_plan(anatomy, config, bites, plan_source)
+        target, fragments, results = _cut_plan(
+            anatomy, replace(config, seed=stream), bites, plan_source
+        )
         note("bites")
         try:
             path = airway_path(

@@ -36,6 +36,15 @@ def test_draw_zero_is_the_seeds_first_and_later_draws_differ() -> None:
         sample_params(7, draw=-1)
 
 
+def test_a_later_draw_is_a_new_anatomy_and_plan_and_draw_zero_the_seeds_own() -> None:
+    assert generate.draw_seed(7, 0) == 7
+    later = [generate.draw_seed(7, k) for k in range(1, 6)]
+    assert len(set(later)) == 5 and 7 not in later
+    assert all(0 <= s < 2**31 for s in later)
+    assert later == [generate.draw_seed(7, k) for k in range(1, 6)]
+    assert generate.draw_seed(8, 1) != generate.draw_seed(7, 1)
+
+
 def test_a_seed_without_an_airway_takes_its_next_draw() -> None:
     config = PhantomConfig(seed=25, ct=False)
     first = build_anatomy(sample_params(25), 25, config.mesh_edge_mm)
