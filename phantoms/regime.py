@@ -30,7 +30,7 @@ import numpy as np
 import open3d as o3d
 
 from phantoms.anatomy import arrays_from_manifold
-from phantoms.roi import ray_origins
+from phantoms.roi import ray_origins, raycasting_scene
 
 FIELD_HALF_ANGLE_DEG = 42.5
 """Half of the default endoscope's 85 deg field of view (``sim`` ``camera.fov_deg``)."""
@@ -88,15 +88,6 @@ REGIME_WINDOWS: dict[str, RegimeWindow] = {
 """Procedures whose anatomy is drawn again until the surgery is specimen-sized."""
 
 
-def _scene(v: np.ndarray, f: np.ndarray) -> o3d.t.geometry.RaycastingScene:
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor.from_numpy(np.ascontiguousarray(v, np.float32)),
-        o3d.core.Tensor.from_numpy(np.ascontiguousarray(f, np.uint32)),
-    )
-    return scene
-
-
 def view_rays(eyes_mm: np.ndarray, aim_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(origins (R, 3), unit directions (R, 3)): each eye's rays inside a circular field of
     ``2 * FIELD_HALF_ANGLE_DEG`` centred on ``aim_mm``."""
@@ -131,7 +122,7 @@ def view_change_mm(
     """Per step, the mean distance (mm) between the preoperative and the step's surface
     point along the same ray, over rays whose step point lies in ``box_mm`` (see module
     doc); NaN for every step when no view keeps its clearance."""
-    pre = _scene(*arrays_from_manifold(preop))
+    pre = raycasting_scene(*arrays_from_manifold(preop))
     eyes = ray_origins(approach_mm, target_center_mm, target_normal).astype(np.float32)
     sd = pre.compute_signed_distance(o3d.core.Tensor.from_numpy(eyes)).numpy()
     # signed distance is negative inside a closed mesh; the views stand in the airway
@@ -143,7 +134,7 @@ def view_change_mm(
     lo, hi = np.asarray(box_mm[0], float), np.asarray(box_mm[1], float)
     out = []
     for solid in steps:
-        t = _scene(*arrays_from_manifold(solid)).cast_rays(rays)["t_hit"].numpy()
+        t = raycasting_scene(*arrays_from_manifold(solid)).cast_rays(rays)["t_hit"].numpy()
         p = o + d * np.where(np.isfinite(t), t, 0.0)[:, None]
         counted = np.isfinite(t) & np.isfinite(t_pre) & np.all((p >= lo) & (p <= hi), axis=1)
         out.append(float(np.abs(t[counted] - t_pre[counted]).mean()) if counted.any() else 0.0)

@@ -40,7 +40,8 @@ MAX_SAMPLES = 4000
 """At most this many sample points of the removed tissue (evenly strided)."""
 
 
-def _scene(v: np.ndarray, f: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+def raycasting_scene(v: np.ndarray, f: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    """Open3D's ray-casting scene of one triangle mesh (vertices (V, 3) mm, faces (F, 3))."""
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor.from_numpy(np.ascontiguousarray(v, np.float32)),
@@ -95,7 +96,7 @@ def revealed_points(
     step's mesh. samples_mm : (N, 3) points inside the removed tissue. origins_mm : (M, 3)
     ray origins in the airway.
     """
-    pre_scene, last_scene = _scene(*preop), _scene(*last)
+    pre_scene, last_scene = raycasting_scene(*preop), raycasting_scene(*last)
     o = np.asarray(origins_mm, np.float32)
     sd = pre_scene.compute_signed_distance(
         o3d.core.Tensor.from_numpy(np.ascontiguousarray(o))
