@@ -58,8 +58,8 @@ def test_a_seed_without_an_airway_takes_its_next_draw() -> None:
             target,
         )
     ph = build_phantom(config)
-    # draw 1 has an airway; its uncinectomy looks smaller than the specimen's
-    # (tests/test_phantoms_regime.py), so a later draw is taken
+    # the first later draw with an airway and a specimen-sized uncinectomy
+    # (tests/test_phantoms_regime.py)
     assert ph.anatomy_draw >= 1
     assert {k: ph.params[k] for k in PARAM_RANGES} == sample_params(25, draw=ph.anatomy_draw)
     # the path keeps the endoscope's clearance from the tissue, by trimesh's own distance
