@@ -13,8 +13,9 @@ the CT (which adds its own ~0.2 mm).
 
 Prints ``name: value`` lines: ``seed_S_step_K_mm`` for every seed and step, per-seed
 ``seed_S_anatomy_draw`` and ``seed_S_view_change_last_mm`` (the generator's own figure of
-the last step, :mod:`phantoms.regime`, by which it drew the anatomy), ``seed_S_ok`` (the goal: >= 1.0 mm at step 1, 3-8 mm at step 5, rising at every step),
-``cpu_simd``, ``elapsed_s``, and last ``no_update_step5_mm_median``.
+the last step, :mod:`phantoms.regime`, by which it drew the anatomy), ``seed_S_ok`` (the
+goal: >= 1.0 mm at step 1, 3-8 mm at step 5, rising at every step), ``cpu_simd``,
+``elapsed_s``, ``seeds_missing_goal`` and last ``no_update_step5_mm_median``.
 
     .venv/bin/python benchmarks/bench_regime.py [--seeds 0-9] [--procedure uncinectomy]
 """
@@ -145,8 +146,9 @@ def main() -> None:
             view = manifest.get("view_change_mm") or []
             if view and view[-1] is not None:
                 print(f"seed_{seed}_view_change_last_mm: {view[-1]:.3f}")
-            print(f"seed_{seed}_ok: {goal_met(errors)}")
-            if not goal_met(errors):
+            ok = goal_met(errors)
+            print(f"seed_{seed}_ok: {ok}")
+            if not ok:
                 missed.append(seed)
             print(f"seed_{seed}_s: {time.perf_counter() - ts:.1f}")
             sys.stdout.flush()

@@ -9,8 +9,8 @@ the endoscope sees through the opening, not on the removed volume (correlation 0
 simulator (``sim.paths.eval_poses``), which this package may not import;
 :func:`view_change_mm` scores the same quantity from the change box's own ray origins
 (:func:`phantoms.roi.ray_origins`: the end of the airway path and points 6-16 mm in
-front of the target, each moved 3 mm sideways), each a pinhole view with the endoscope's
-85 deg field aimed at the target: per step, the mean distance between the points that the
+front of the target, each moved 3 mm sideways), each a pinhole view with an 85 deg
+circular field (:data:`FIELD_HALF_ANGLE_DEG`) aimed at the target: per step, the mean distance between the points that the
 same ray hits on the preoperative and on the step's surface, over the rays whose step
 point lies in the change box. Same inputs, same figures (no random numbers).
 
@@ -29,6 +29,7 @@ import manifold3d as m3d
 import numpy as np
 import open3d as o3d
 
+from chisel.core.geometry import look_at
 from phantoms.anatomy import arrays_from_manifold
 from phantoms.roi import ray_origins, raycasting_scene
 
@@ -99,13 +100,15 @@ def view_rays(eyes_mm: np.ndarray, aim_mm: np.ndarray) -> tuple[np.ndarray, np.n
     inside = u**2 + v**2 <= t * t
     u, v = u[inside], v[inside]
     origins, dirs = [], []
+    aim = np.asarray(aim_mm, float)
     for eye in np.asarray(eyes_mm, float):
-        a = np.asarray(aim_mm, float) - eye
-        a /= np.linalg.norm(a)
-        helper = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        e1 = np.cross(a, helper)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(a, e1)
+        a = aim - eye
+        up = (
+            np.array([0.0, 0.0, 1.0])
+            if abs(a[2]) < 0.9 * np.linalg.norm(a)
+            else np.array([0.0, 1.0, 0.0])
+        )
+        e1, e2, a = look_at(eye, aim, up)[:3, :3].T  # the view's camera axes x, y, z
         d = a[None] + u[:, None] * e1[None] + v[:, None] * e2[None]
         dirs.append(d / np.linalg.norm(d, axis=1, keepdims=True))
         origins.append(np.repeat(eye[None], len(d), axis=0))
