@@ -44,6 +44,7 @@ from bench_render import cpu_simd  # noqa: E402
 
 def build_floor_mesh(ct: Path, preop: Path, out: Path, model: dict) -> Path:
     """The model built from one step's true CT with the preop sequence, as a mesh file."""
+    out.mkdir(parents=True, exist_ok=True)
     npz, ply = out / "model.npz", out / "mesh.ply"
     opts = [
         "--voxel-size-mm", str(model["voxel_size_mm"]), "--trunc-mm", str(model["trunc_mm"]),
@@ -70,9 +71,8 @@ def floor_of_seed(seed_dir: Path, model: dict, work: Path) -> list[tuple[int, fl
         step_json = json.loads((seed_dir / "base" / "eval" / f"step_{k:02d}.json").read_text())
         box = step_json["protocol"]["roi_box_mm"]
         floor = build_floor_mesh(
-            phantom / entry["ct_hu"], seed_dir / "render" / "preop", _mkdir(work / f"{k:02d}"),
-            model,
-        )  # fmt: skip
+            phantom / entry["ct_hu"], seed_dir / "render" / "preop", work / f"{k:02d}", model
+        )
         cells = evaluate_step(
             phantom / entry["mesh"],
             {
@@ -85,11 +85,6 @@ def floor_of_seed(seed_dir: Path, model: dict, work: Path) -> list[tuple[int, fl
         )["methods"]
         out.append((k, cells["ct_floor"]["mean_mm"], cells["exact"]["mean_mm"]))
     return out
-
-
-def _mkdir(p: Path) -> Path:
-    p.mkdir(parents=True, exist_ok=True)
-    return p
 
 
 def main() -> int:
