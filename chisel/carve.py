@@ -151,18 +151,13 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
 
 @numba.njit(parallel=True, cache=True)
 def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
-                 status, z0, z1, half_voxel_mm, votes, need_votes, reach, use_reach, trunc_mm):  # fmt: skip
+                 status, z0, z1, half_voxel_mm, votes, need_votes):  # fmt: skip
     # Voxel-centric, like the fusion kernel: a voxel is set free when its centre projects
     # (nearest pixel, lens distortion honoured) to a pixel whose ray deleted a layer and
     # its depth lies in that layer. A ray-centric walk would free every voxel a changed
     # ray merely grazes, eroding the rim of an opening by up to a voxel per view.
     # need_votes > 1 (a noisy frame): the frame votes, and the voxel goes at its
     # need_votes-th vote of the step.
-    # use_reach (a precise frame): behind the last deleted layer, tissue the model still
-    # holds in front of the estimate (``reach``, z-depth) takes the projective distance to
-    # it. The layer walk samples the nearest voxel every half voxel and stops where the
-    # estimate lies less than the threshold past a face; the rim of a cut, voxels whose
-    # centres the ray passes before it meets the estimate, was left as tissue.
     H, W = status.shape
     ny, nz = shape[1], shape[2]
     k1_, k2_, p1_, p2_, k3_ = dist[0], dist[1], dist[2], dist[3], dist[4]
@@ -182,16 +177,12 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                 u, v = nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H)
                 if u < 0 or status[v, u] != CARVE_DELETED:
                     continue
-                inside = False
-                zb_last = 0.0
                 for layer in range(n_layers):
                     za = z0[v, u, layer]
                     zb = z1[v, u, layer]
                     if not zb > za:
                         break
-                    zb_last = zb
                     if za - half_voxel_mm <= zc < zb:
-                        inside = True
                         idx = (i * ny + j) * nz + k
                         if need_votes > 1 and tsdf[idx] < 1.0:
                             if votes[idx] < 255:
@@ -205,22 +196,14 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                                 reset[idx] = 1
                             n += 1
                         break
-                if use_reach and not inside and zb_last <= zc < reach[v, u]:
-                    idx = (i * ny + j) * nz + k
-                    if tsdf[idx] < 0.0:
-                        tsdf[idx] = min(1.0, (reach[v, u] - zc) / trunc_mm)
-                        weight[idx] = 1.0
-                        if use_reset:
-                            reset[idx] = 1
-                        n += 1
         counts[ii] = n
     return counts.sum()
 
 
 @numba.njit(cache=True)
-def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach, use_reach):
+def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1):
     # Index box [lo, hi) of the voxels that the deleted layers can reach: the hull of the
-    # layers' end points (first layer's front, deepest back or the reach) in voxel coordinates.
+    # layers' end points (first layer's front, deepest back) in voxel coordinates.
     H, W = status.shape
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
@@ -232,8 +215,6 @@ def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach, use
             zb = z1[v, u, 0]
             for layer in range(1, z1.shape[2]):
                 zb = max(zb, z1[v, u, layer])
-            if use_reach:
-                zb = max(zb, reach[v, u])
             for z in (z0[v, u, 0], zb):
                 x, y, w = rays[v, u, 0] * z, rays[v, u, 1] * z, rays[v, u, 2] * z
                 for a in range(3):
@@ -322,17 +303,7 @@ def carve_first_layer(
             raise InvalidInputError("votes", f"expected {model.shape} uint8, got {votes.shape}")
         need_votes, vt = int(noisy_votes), _flat(votes, "votes")
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
-    # A precise estimate also frees what the model holds between its last deleted layer and
-    # the estimate (see _carve_apply); a noisy one deletes whole layers only.
-    e = depth(m_new)
-    reach = (
-        np.where(np.isfinite(e), e, 0.0).astype(np.float32)
-        if precise
-        else np.zeros((1, 1), np.float32)
-    )
-    box = _deleted_voxel_box(
-        shape, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1, reach, bool(precise)
-    )
+    box = _deleted_voxel_box(shape, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
     if not np.all(box[1] > box[0]):
         return status, 0
     n = _carve_apply(
@@ -340,7 +311,6 @@ def carve_first_layer(
         np.ascontiguousarray(T_cam_from_voxel[:3, :3]), np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
         camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
-        status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes, reach, bool(precise),
-        float(model.trunc_mm),
+        status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes,
     )  # fmt: skip
     return status, int(n)

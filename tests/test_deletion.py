@@ -253,34 +253,6 @@ def test_a_noisy_estimate_deletes_one_layer_and_only_past_the_middle_of_the_cavi
         assert (_freed(model, m.tsdf, 13.8, 15.0) > 0) == precise
 
 
-def test_a_precise_estimate_frees_held_tissue_in_front_of_it_behind_the_deleted_layer() -> None:
-    """Two 0.8 mm lamellae at z = 10 and z = 14; the cut took the first and the front half
-    of the second (the estimate is the plane z = 14.4). Layer deletion stops at the next
-    surface the model holds (the estimate lies less than the threshold past it), so exact
-    depth must free that surface's tissue up to the estimate itself: a cut's rim seen
-    obliquely is this case. A noisy estimate does not; nothing beyond the estimate moves."""
-    model = _walls_model([(10.0, 10.8), (14.0, 14.8)])
-    P = _points(model)
-    axis = np.max(np.abs(P[..., :2]), axis=-1) < 1.5
-    for precise in (True, False):
-        m = model.copy()
-        _carve_at(m, 14.4, precise)
-        assert _freed(model, m.tsdf, 9.8, 11.0) > 0
-        front = _freed(model, m.tsdf, 13.9, 14.3)
-        assert (front > 0) == precise, (precise, front)
-        beyond = axis & (P[..., 2] > 14.55)
-        np.testing.assert_array_equal(m.tsdf[beyond], model.tsdf[beyond])
-        if precise:
-            # The freed voxels hold their distance to the estimate, not "far from any surface".
-            near = axis & (P[..., 2] > 14.0) & (P[..., 2] < 14.4) & (model.tsdf < 0)
-            expected = (14.4 - P[..., 2][near]) / model.trunc_mm
-            np.testing.assert_allclose(m.tsdf[near], expected, atol=0.05)
-    # The estimate on the next surface itself (nothing more was cut): that surface stays.
-    m = model.copy()
-    _carve_at(m, 14.0, True)
-    assert _freed(model, m.tsdf, 13.9, 14.9) == 0
-
-
 def test_a_noisy_estimate_deletes_no_layer_thicker_than_surgery_takes() -> None:
     """FESS takes lamellae 0.4-2 mm thick; a noisy "deeper here" across a 6 mm layer (a
     turbinate) is the estimate's error. Air behind each wall to z = 20, estimate at z 19."""
