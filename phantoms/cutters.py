@@ -159,8 +159,9 @@ def cap_cutter(anatomy: Anatomy, frag: Fragment) -> m3d.Manifold:
     :func:`phantoms.procedures._cap_fragments` planned on that sphere. Every side of the
     cutter is a cone through the cell's centre, so the cut crosses the wall square to it,
     as forceps cut a lamella. A planar side cut the wall at up to ~40 deg and left wedge
-    tips 0.04-0.5 mm thick (median 0.2 mm), thinner than the CT's voxel: no CT and no model on a 0.5 mm
-    grid holds them, and they dominated every method's error (docs/phantoms.md).
+    tips 0.04-0.5 mm thick (median 0.2 mm), thinner than the CT's voxel: no CT and no
+    model on a 0.5 mm grid holds them, and they dominated every method's error
+    (docs/phantoms.md).
     """
     p = frag.params
     cell = anatomy.cell(frag.structure)

@@ -12,7 +12,8 @@ simulator (``sim.paths.eval_poses``), which this package may not import;
 front of the target, each moved 3 mm sideways), each a pinhole view with an 85 deg
 circular field (:data:`FIELD_HALF_ANGLE_DEG`) aimed at the target: per step, the mean
 distance between the points that the same ray hits on the preoperative and on the step's
-surface, over the rays whose step point lies in the change box. Same inputs, same figures (no random numbers).
+surface, over the rays whose step point lies in the change box. Same inputs, same
+figures (no random numbers).
 
 Measured against ``benchmarks/bench_regime.py`` on phantom seeds 0-26 (the simulator's 12
 seeded evaluation poses at 320 x 256 with the field stop): correlation 0.94 at the last
