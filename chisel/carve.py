@@ -44,7 +44,7 @@ def _voxel_at(A, z, rx, ry, nx, ny, nz):
 
 @numba.njit(parallel=True, cache=True)
 def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_mm, tol_mm,
-                max_layers, precise, max_layer_mm, max_depth_mm, z0, z1):  # fmt: skip
+                max_layers, precise, max_layer_mm, max_depth_mm, z0, z1, reach):  # fmt: skip
     # Read-only pass: per changed pixel, its status and the depth intervals [z0, z1) of the
     # layers to delete (up to ``max_layers``). No voxel is written here, so the result does
     # not depend on the order the pixels are visited in.
@@ -52,6 +52,10 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
     # lies past the middle of the cavity behind it, no thicker along the ray than
     # ``max_layer_mm``, nothing where the old surface lies deeper than ``max_depth_mm``,
     # and no new surface inside held tissue.
+    # ``precise`` and deletion stopped at a surface the model holds (the estimate lies less
+    # than the threshold past it, or inside its layer): ``reach`` is where the estimate
+    # says that surface now lies, at most ``tol_mm`` behind its front. The walk samples the
+    # nearest voxel every half voxel, so without it a cut's rim seen at an angle stays.
     H, W = mask.shape
     nx, ny, nz = shape[0], shape[1], shape[2]
     status = np.zeros((H, W), dtype=np.uint8)
@@ -118,6 +122,8 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
                 if not ok or ze < z + 0.5 * tol_mm:
                     if n == 0 and held and not precise:
                         st = CARVE_NONE  # a noisy estimate cannot place a cut inside tissue
+                    if n > 0 and precise:
+                        reach[v, u] = min(ze, start + tol_mm)
                     break
                 back = z
                 if not precise and (back - start) * ray_mm > max_layer_mm:
@@ -144,6 +150,8 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
                 n += 1
                 st = CARVE_DELETED
                 if not nxt or z >= ze - tol_mm or not precise:
+                    if nxt and precise:
+                        reach[v, u] = min(ze, z + tol_mm)
                     break  # the estimate agrees with the next surface: deletion stops here
             status[v, u] = st
     return status
@@ -151,13 +159,15 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
 
 @numba.njit(parallel=True, cache=True)
 def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
-                 status, z0, z1, half_voxel_mm, votes, need_votes):  # fmt: skip
+                 status, z0, z1, half_voxel_mm, votes, need_votes, reach, reach_free, trunc_mm):  # fmt: skip
     # Voxel-centric, like the fusion kernel: a voxel is set free when its centre projects
     # (nearest pixel, lens distortion honoured) to a pixel whose ray deleted a layer and
     # its depth lies in that layer. A ray-centric walk would free every voxel a changed
     # ray merely grazes, eroding the rim of an opening by up to a voxel per view.
     # need_votes > 1 (a noisy frame): the frame votes, and the voxel goes at its
-    # need_votes-th vote of the step.
+    # need_votes-th vote of the step. Behind the last deleted layer, tissue in front of the
+    # pixel's ``reach`` (0 = none) takes the projective distance to it when its centre lies
+    # in front of ``reach_free`` (see carve_first_layer).
     H, W = status.shape
     ny, nz = shape[1], shape[2]
     k1_, k2_, p1_, p2_, k3_ = dist[0], dist[1], dist[2], dist[3], dist[4]
@@ -177,12 +187,16 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                 u, v = nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H)
                 if u < 0 or status[v, u] != CARVE_DELETED:
                     continue
+                inside = False
+                zb_last = 0.0
                 for layer in range(n_layers):
                     za = z0[v, u, layer]
                     zb = z1[v, u, layer]
                     if not zb > za:
                         break
+                    zb_last = zb
                     if za - half_voxel_mm <= zc < zb:
+                        inside = True
                         idx = (i * ny + j) * nz + k
                         if need_votes > 1 and tsdf[idx] < 1.0:
                             if votes[idx] < 255:
@@ -196,12 +210,20 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                                 reset[idx] = 1
                             n += 1
                         break
+                if not inside and zb_last <= zc < reach_free[v, u]:
+                    idx = (i * ny + j) * nz + k
+                    if tsdf[idx] < 0.0:
+                        tsdf[idx] = min(1.0, (reach[v, u] - zc) / trunc_mm)
+                        weight[idx] = 1.0
+                        if use_reset:
+                            reset[idx] = 1
+                        n += 1
         counts[ii] = n
     return counts.sum()
 
 
 @numba.njit(cache=True)
-def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1):
+def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach):
     # Index box [lo, hi) of the voxels that the deleted layers can reach: the hull of the
     # layers' end points (first layer's front, deepest back) in voxel coordinates.
     H, W = status.shape
@@ -215,6 +237,7 @@ def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1):
             zb = z1[v, u, 0]
             for layer in range(1, z1.shape[2]):
                 zb = max(zb, z1[v, u, layer])
+            zb = max(zb, reach[v, u])
             for z in (z0[v, u, 0], zb):
                 x, y, w = rays[v, u, 0] * z, rays[v, u, 1] * z, rays[v, u, 2] * z
                 for a in range(3):
@@ -228,6 +251,23 @@ def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1):
         box[0, a] = min(max(int(np.floor(lo[a])) - 1, 0), shape[a])
         box[1, a] = min(max(int(np.ceil(hi[a])) + 2, 0), shape[a])
     return box
+
+
+def _reach_free(
+    reach: np.ndarray, rays: np.ndarray, estimate: np.ndarray, margin_mm: float
+) -> np.ndarray:
+    """(H, W) z-depth in front of which a voxel the model holds behind the deleted layers is
+    set free: ``margin_mm`` from the estimate's surface along its normal. A voxel that near
+    the surface is on it (pose jitter and the registration's residual), and seen at a grazing
+    angle a lateral error of a tenth of a millimetre is a millimetre of depth; there the
+    margin grows as 1 / cos of the incidence and a silhouette (no normal) frees nothing."""
+    P = rays * np.where(np.isfinite(estimate), estimate, np.nan)[..., None]
+    n = np.cross(np.gradient(P, axis=1), np.gradient(P, axis=0))
+    ray_mm = np.linalg.norm(rays, axis=-1)  # ray length per unit of z
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs(np.sum(n * rays, axis=-1)) / (np.linalg.norm(n, axis=-1) * ray_mm)
+        free = reach - margin_mm / (cos * ray_mm)
+    return np.where((reach > 0) & np.isfinite(free), free, 0.0)
 
 
 def carve_first_layer(
@@ -257,6 +297,9 @@ def carve_first_layer(
     (at most ``max_layers``). Where the model holds nothing behind (unobserved voxels,
     or solid tissue reaching beyond the estimate) the pixel's status is
     :data:`CARVE_FUSE`: the caller fuses the new depth there (the paper's masked update).
+    Where deletion stopped at a surface the model holds, a precise estimate also frees the
+    tissue in front of it up to ``tol_mm`` past that surface's front (the rim of a cut seen
+    at an angle), keeping a quarter voxel from it along its normal (:func:`_reach_free`).
 
     ``precise=False`` is for an estimate noisier than the threshold (a network's): it can
     say "deeper here" but not where. Then at most one layer is deleted, only when the
@@ -285,13 +328,14 @@ def carve_first_layer(
     H, W = camera.shape
     z0 = np.zeros((H, W, max_layers))
     z1 = np.zeros((H, W, max_layers))
+    reach = np.zeros((H, W))
     tsdf = _flat(model.tsdf, "model.tsdf")
     weight = _flat(model.weight, "model.weight")
     status = _carve_plan(
         tsdf, weight, shape, A, rays, depth(m_t), depth(m_new), np.asarray(mask, bool),
         float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
         int(max_layers), bool(precise), float(noisy_layer_mm), float(noisy_max_depth_mm),
-        z0, z1,
+        z0, z1, reach,
     )  # fmt: skip
     use_reset = reset is not None
     if reset is not None and (reset.shape != model.shape or reset.dtype != np.uint8):
@@ -303,7 +347,7 @@ def carve_first_layer(
             raise InvalidInputError("votes", f"expected {model.shape} uint8, got {votes.shape}")
         need_votes, vt = int(noisy_votes), _flat(votes, "votes")
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
-    box = _deleted_voxel_box(shape, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1)
+    box = _deleted_voxel_box(shape, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1, reach)
     if not np.all(box[1] > box[0]):
         return status, 0
     n = _carve_apply(
@@ -311,6 +355,8 @@ def carve_first_layer(
         np.ascontiguousarray(T_cam_from_voxel[:3, :3]), np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
         camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
-        status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes,
+        status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes, reach,
+        _reach_free(reach, rays, depth(m_new), 0.25 * float(model.voxel_size_mm)),
+        float(model.trunc_mm),
     )  # fmt: skip
     return status, int(n)

@@ -253,6 +253,71 @@ def test_a_noisy_estimate_deletes_one_layer_and_only_past_the_middle_of_the_cavi
         assert (_freed(model, m.tsdf, 13.8, 15.0) > 0) == precise
 
 
+def test_a_precise_estimate_frees_held_tissue_in_front_of_it_behind_the_deleted_layer() -> None:
+    """Two 0.8 mm lamellae at z = 10 and z = 14; the cut took the first and the front half
+    of the second (the estimate is the plane z = 14.4). Layer deletion stops at the next
+    surface the model holds (the estimate lies less than the threshold past it), so exact
+    depth must free that surface's tissue up to the estimate itself: a cut's rim seen
+    obliquely is this case. A noisy estimate does not; nothing beyond the estimate moves."""
+    model = _walls_model([(10.0, 10.8), (14.0, 14.8)])
+    P = _points(model)
+    axis = np.max(np.abs(P[..., :2]), axis=-1) < 1.5
+    for precise in (True, False):
+        m = model.copy()
+        _carve_at(m, 14.4, precise)
+        assert _freed(model, m.tsdf, 9.8, 11.0) > 0
+        front = _freed(model, m.tsdf, 13.9, 14.3)
+        assert (front > 0) == precise, (precise, front)
+        beyond = axis & (P[..., 2] > 14.55)
+        np.testing.assert_array_equal(m.tsdf[beyond], model.tsdf[beyond])
+        if precise:
+            # The freed voxels hold their distance to the estimate, not "far from any surface".
+            near = axis & (P[..., 2] > 14.0) & (P[..., 2] < 14.4) & (model.tsdf < 0)
+            expected = (14.4 - P[..., 2][near]) / model.trunc_mm
+            np.testing.assert_allclose(m.tsdf[near], expected, atol=0.05)
+    # The estimate on the next surface itself (nothing more was cut): that surface stays.
+    m = model.copy()
+    _carve_at(m, 14.0, True)
+    assert _freed(model, m.tsdf, 13.9, 14.9) == 0
+
+
+def test_a_precise_estimate_frees_no_more_than_the_threshold_of_a_held_surface() -> None:
+    """A silhouette's far depth behind near tissue looks like a deep cut: the estimate at
+    z = 17 lies 3 mm inside a 5 mm layer held behind a deleted lamella. The first lamella
+    goes, and the held layer loses at most the threshold (1 mm) of its front, not 3 mm."""
+    model = _walls_model([(10.0, 10.8), (14.0, 19.0)])
+    m = model.copy()
+    _carve_at(m, 17.0, True)
+    assert _freed(model, m.tsdf, 9.8, 11.0) > 0
+    assert _freed(model, m.tsdf, 14.0, 14.8) > 0
+    assert _freed(model, m.tsdf, 15.3, 19.0) == 0
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 30.0, 50.0])
+def test_the_reach_stops_a_fixed_distance_from_the_estimate_along_its_normal(
+    tilt_deg: float,
+) -> None:
+    """The estimate is a plane tilted about the camera's y axis; a voxel is freed only in
+    front of it by more than the margin measured along the plane's normal, which in z is
+    margin / |n . ray| (ray with z = 1): analytic, independent of the image gradients."""
+    from chisel.carve import _reach_free
+
+    t = np.radians(tilt_deg)
+    n = np.array([-np.sin(t), 0.0, np.cos(t)])  # unit normal of z = 20 + x tan(t)
+    rays = CAM.rays_cam()
+    z = 20.0 / (1.0 - rays[..., 0] * np.tan(t))  # the plane along each ray
+    free = _reach_free(z, rays, z.astype(np.float32), 0.1)
+    expected = z - 0.1 / np.abs(rays @ n)
+    inner = (slice(2, -2), slice(2, -2))  # np.gradient is one-sided at the border
+    np.testing.assert_allclose(free[inner], expected[inner], rtol=0, atol=2e-3)
+    # A depth edge (a silhouette) has no normal worth the name: it frees nothing near it.
+    step = z.astype(np.float32).copy()
+    step[:, CAM.shape[1] // 2 :] += 8.0
+    free = _reach_free(np.asarray(step, float), rays, step, 0.1)
+    edge = free[10:-10, CAM.shape[1] // 2 - 1 : CAM.shape[1] // 2 + 1]
+    assert np.all(edge < step[10:-10, CAM.shape[1] // 2 - 1 : CAM.shape[1] // 2 + 1] - 0.5)
+
+
 def test_a_noisy_estimate_deletes_no_layer_thicker_than_surgery_takes() -> None:
     """FESS takes lamellae 0.4-2 mm thick; a noisy "deeper here" across a 6 mm layer (a
     turbinate) is the estimate's error. Air behind each wall to z = 20, estimate at z 19."""
