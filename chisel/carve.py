@@ -10,6 +10,7 @@ the voxels whose centres project into them, as fusion decides (see docs/updater.
 
 from __future__ import annotations
 
+import cv2
 import numba
 import numpy as np
 
@@ -26,6 +27,10 @@ an earlier frame of the step deleted it): nothing to fuse."""
 CARVE_FUSE = 2
 """The model holds nothing behind the first surface within reach of the estimate
 (unobserved voxels, or solid tissue beyond the estimate): fuse the new depth there."""
+
+CARVE_RIM = 3
+"""Beside a changed pixel, unchanged by the threshold, with a precise estimate: the tissue
+the model holds in front of the estimate near its own surface goes (the cut's edge)."""
 
 
 @numba.njit(inline="always")
@@ -159,7 +164,8 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
 
 @numba.njit(parallel=True, cache=True)
 def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
-                 status, z0, z1, half_voxel_mm, votes, need_votes, reach, reach_free, trunc_mm):  # fmt: skip
+                 status, z0, z1, half_voxel_mm, votes, need_votes, reach, reach_free, reach_from,
+                 trunc_mm):  # fmt: skip
     # Voxel-centric, like the fusion kernel: a voxel is set free when its centre projects
     # (nearest pixel, lens distortion honoured) to a pixel whose ray deleted a layer and
     # its depth lies in that layer. A ray-centric walk would free every voxel a changed
@@ -185,7 +191,7 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                 xc = (R[0, 0] * i + R[0, 1] * j + R[0, 2] * k + t[0]) / zc
                 yc = (R[1, 0] * i + R[1, 1] * j + R[1, 2] * k + t[1]) / zc
                 u, v = nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H)
-                if u < 0 or status[v, u] != CARVE_DELETED:
+                if u < 0 or (status[v, u] != CARVE_DELETED and status[v, u] != CARVE_RIM):
                     continue
                 inside = False
                 zb_last = 0.0
@@ -210,7 +216,7 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                                 reset[idx] = 1
                             n += 1
                         break
-                if not inside and zb_last <= zc < reach_free[v, u]:
+                if not inside and max(zb_last, reach_from[v, u]) <= zc < reach_free[v, u]:
                     idx = (i * ny + j) * nz + k
                     if tsdf[idx] < 0.0:
                         tsdf[idx] = min(1.0, (reach[v, u] - zc) / trunc_mm)
@@ -232,7 +238,7 @@ def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach):
     R = T_voxel_from_cam
     for v in range(H):
         for u in range(W):
-            if status[v, u] != CARVE_DELETED:
+            if status[v, u] != CARVE_DELETED and status[v, u] != CARVE_RIM:
                 continue
             zb = z1[v, u, 0]
             for layer in range(1, z1.shape[2]):
@@ -285,6 +291,7 @@ def carve_first_layer(
     noisy_votes: int = 1,
     noisy_layer_mm: float = np.inf,
     noisy_max_depth_mm: float = np.inf,
+    rim_px: int = 0,
 ) -> tuple[np.ndarray, int]:
     """Deletion-first carving of one frame's change, **in place**; returns (status, voxels).
 
@@ -337,6 +344,19 @@ def carve_first_layer(
         int(max_layers), bool(precise), float(noisy_layer_mm), float(noisy_max_depth_mm),
         z0, z1, reach,
     )  # fmt: skip
+    reach_from = np.zeros((H, W))
+    if precise and rim_px > 0:
+        zt, ze = depth(m_t).astype(np.float64), depth(m_new).astype(np.float64)
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rim_px + 1, 2 * rim_px + 1))
+        changed = np.asarray(mask, bool) & (status != CARVE_NONE)
+        near = cv2.dilate(changed.astype(np.uint8), k) > 0
+        with np.errstate(invalid="ignore"):
+            ring = near & (status == CARVE_NONE) & ~np.asarray(mask, bool) & (ze > zt)
+            ring &= ze < zt + tol_mm  # deeper by more is a change the mask or its check refused
+        reach[ring] = np.minimum(ze, zt + tol_mm)[ring]
+        reach_from[ring] = zt[ring] - 0.5 * float(model.voxel_size_mm)
+        z0[ring, 0] = reach_from[ring]
+        status[ring] = CARVE_RIM
     use_reset = reset is not None
     if reset is not None and (reset.shape != model.shape or reset.dtype != np.uint8):
         raise InvalidInputError("reset", f"expected {model.shape} uint8, got {reset.shape}")
@@ -356,7 +376,7 @@ def carve_first_layer(
         camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
         status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes, reach,
-        _reach_free(reach, rays, depth(m_new), 0.25 * float(model.voxel_size_mm)),
+        _reach_free(reach, rays, depth(m_new), 0.25 * float(model.voxel_size_mm)), reach_from,
         float(model.trunc_mm),
     )  # fmt: skip
     return status, int(n)

@@ -76,6 +76,13 @@ class UpdateConfig:
     Over the `table` run's seeds 0-4 (layer limit on) every truly removed voxel the network
     row found lay within 20 mm of a camera of its step, 29 % of its false deletions beyond
     (docs/updater.md). Exact depth carves at any depth."""
+    rim_px: int = 5
+    """Deletion carving of a precise frame (exact depth; see ``noisy_carve``): within this
+    many pixels of its carved change, where the estimate lies deeper than the model by
+    less than the threshold, the tissue the model holds in front of the estimate goes (a
+    cut's edge, where the depth grows from 0 to the threshold and the paper's mask sees
+    nothing). 5 = the mask's closing; 0 = off. Exact depth's removed-tissue Dice on seeds
+    0-4: worst step 0.865 -> 0.889 (docs/updater.md)."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
     points only while the hand-eye estimate has no prior (lost track at the start), and
@@ -114,5 +121,7 @@ class UpdateConfig:
             raise InvalidInputError(
                 "noisy_max_depth_mm", f"must be > 0 mm, got {self.noisy_max_depth_mm}"
             )
+        if self.rim_px < 0:
+            raise InvalidInputError("rim_px", f"must be >= 0 pixels, got {self.rim_px}")
         if self.hand_eye_frames < 1:
             raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")

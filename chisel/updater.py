@@ -102,7 +102,7 @@ def fuse(
             model, camera, det.T_world_from_cam, det.m_t, det.m_prime, mask, det.threshold_mm,
             reset=reset, precise=is_precise(det.threshold_mm, cfg, estimate), votes=votes,
             noisy_votes=cfg.noisy_votes, noisy_layer_mm=cfg.noisy_layer_mm,
-            noisy_max_depth_mm=cfg.noisy_max_depth_mm,
+            noisy_max_depth_mm=cfg.noisy_max_depth_mm, rim_px=cfg.rim_px,
         )  # fmt: skip
         deleted_px = int((status == CARVE_DELETED).sum())
         fuse_mask = mask & (status == CARVE_FUSE)

@@ -318,6 +318,41 @@ def test_the_reach_stops_a_fixed_distance_from_the_estimate_along_its_normal(
     assert np.all(edge < step[10:-10, CAM.shape[1] // 2 - 1 : CAM.shape[1] // 2 + 1] - 0.5)
 
 
+def test_a_precise_estimate_takes_the_cuts_edge_the_mask_does_not_see() -> None:
+    """A 4 mm wall; the cut took 3 mm in a central patch (the change mask) and 0.7 mm, less
+    than the threshold, around it (the edge of the cut; the estimate is 10.7 there and
+    beyond). Exact depth frees the edge's tissue in front of the estimate within ``rim_px``
+    of the changed patch and nothing deeper, farther out, or when ``rim_px`` is 0; a noisy
+    estimate never does."""
+    from chisel.carve import CARVE_RIM, carve_first_layer
+
+    model = _walls_model([(10.0, 14.0)])
+    T = look_at(np.zeros(3), np.array([0.0, 0.0, 10.0]), np.array([0.0, -1.0, 0.0]))
+    m_t = np.full(CAM.shape, 10.0, np.float32)
+    est = np.full(CAM.shape, 10.7, np.float32)
+    mask = np.zeros(CAM.shape, bool)
+    mask[30:50, 38:58] = True
+    est[mask] = 13.0
+    P = _points(model)
+    uv, z = CAM.project(transform_points(np.linalg.inv(T), P.reshape(-1, 3)))
+    u, v = np.round(uv[:, 0]).reshape(model.shape), np.round(uv[:, 1]).reshape(model.shape)
+    # Pixel distance of each voxel's projection from the changed patch (Chebyshev).
+    gap = np.maximum(np.maximum(38 - u, u - 57), np.maximum(30 - v, v - 49))
+    for rim_px, precise in ((4, True), (0, True), (4, False)):
+        m = model.copy()
+        status, _ = carve_first_layer(
+            m, CAM, T, m_t, est, mask, tol_mm=1.0, precise=precise, rim_px=rim_px
+        )
+        freed = (model.tsdf < 0) & (m.tsdf > 0)
+        edge = freed & (gap >= 1) & (gap <= 3)
+        if rim_px and precise:
+            assert (status == CARVE_RIM).any() and edge.sum() > 0
+            assert not (freed & (gap >= 1) & (P[..., 2] > 10.7)).any()
+        else:
+            assert not (status == CARVE_RIM).any() and edge.sum() == 0
+        assert not (freed & (gap > rim_px + 1)).any()
+
+
 def test_a_noisy_estimate_deletes_no_layer_thicker_than_surgery_takes() -> None:
     """FESS takes lamellae 0.4-2 mm thick; a noisy "deeper here" across a 6 mm layer (a
     turbinate) is the estimate's error. Air behind each wall to z = 20, estimate at z 19."""
