@@ -267,13 +267,28 @@ def _reach_free(
     the surface is on it (pose jitter and the registration's residual), and seen at a grazing
     angle a lateral error of a tenth of a millimetre is a millimetre of depth; there the
     margin grows as 1 / cos of the incidence and a silhouette (no normal) frees nothing."""
-    P = rays * np.where(np.isfinite(estimate), estimate, np.nan)[..., None]
+    out = np.zeros(reach.shape)
+    rows = np.flatnonzero((reach > 0).any(axis=1))
+    cols = np.flatnonzero((reach > 0).any(axis=0))
+    if rows.size == 0:
+        return out
+    # Only the pixels with a reach, and two around them for the central differences.
+    H, W = reach.shape
+    box = (
+        slice(max(rows[0] - 2, 0), min(rows[-1] + 3, H)),
+        slice(max(cols[0] - 2, 0), min(cols[-1] + 3, W)),
+    )
+    q, r, e = reach[box], rays[box], estimate[box]
+    if min(q.shape) < 2:
+        return out  # no normal from a single row or column
+    P = r * np.where(np.isfinite(e), e, np.nan)[..., None]
     n = np.cross(np.gradient(P, axis=1), np.gradient(P, axis=0))
-    ray_mm = np.linalg.norm(rays, axis=-1)  # ray length per unit of z
+    ray_mm = np.linalg.norm(r, axis=-1)  # ray length per unit of z
     with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.abs(np.sum(n * rays, axis=-1)) / (np.linalg.norm(n, axis=-1) * ray_mm)
-        free = reach - margin_mm / (cos * ray_mm)
-    return np.where((reach > 0) & np.isfinite(free), free, 0.0)
+        cos = np.abs(np.sum(n * r, axis=-1)) / (np.linalg.norm(n, axis=-1) * ray_mm)
+        free = q - margin_mm / (cos * ray_mm)
+    out[box] = np.where((q > 0) & np.isfinite(free), free, 0.0)
+    return out
 
 
 def carve_first_layer(
@@ -345,10 +360,10 @@ def carve_first_layer(
         z0, z1, reach,
     )  # fmt: skip
     reach_from = np.zeros((H, W))
-    if precise and rim_px > 0:
+    changed = np.asarray(mask, bool) & (status != CARVE_NONE)
+    if precise and rim_px > 0 and changed.any():
         zt, ze = depth(m_t).astype(np.float64), depth(m_new).astype(np.float64)
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rim_px + 1, 2 * rim_px + 1))
-        changed = np.asarray(mask, bool) & (status != CARVE_NONE)
         near = cv2.dilate(changed.astype(np.uint8), k) > 0
         with np.errstate(invalid="ignore"):
             ring = near & (status == CARVE_NONE) & ~np.asarray(mask, bool) & (ze > zt)
