@@ -229,9 +229,10 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
 
 
 @numba.njit(cache=True)
-def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach):
-    # Index box [lo, hi) of the voxels that the deleted layers can reach: the hull of the
-    # layers' end points (first layer's front, deepest back) in voxel coordinates.
+def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach, reach_from):
+    # Index box [lo, hi) of the voxels that carving can reach: the hull, in voxel
+    # coordinates, of each pixel's front (first layer's front, or the edge's reach_from) and
+    # back (deepest layer back or reach).
     H, W = status.shape
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
@@ -240,11 +241,12 @@ def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach):
         for u in range(W):
             if status[v, u] != CARVE_DELETED and status[v, u] != CARVE_RIM:
                 continue
+            za = z0[v, u, 0] if status[v, u] == CARVE_DELETED else reach_from[v, u]
             zb = z1[v, u, 0]
             for layer in range(1, z1.shape[2]):
                 zb = max(zb, z1[v, u, layer])
             zb = max(zb, reach[v, u])
-            for z in (z0[v, u, 0], zb):
+            for z in (za, zb):
                 x, y, w = rays[v, u, 0] * z, rays[v, u, 1] * z, rays[v, u, 2] * z
                 for a in range(3):
                     p = R[a, 0] * x + R[a, 1] * y + R[a, 2] * w + R[a, 3]
@@ -351,26 +353,26 @@ def carve_first_layer(
     z0 = np.zeros((H, W, max_layers))
     z1 = np.zeros((H, W, max_layers))
     reach = np.zeros((H, W))
+    reach_from = np.zeros((H, W))
+    m_t, m_new, mask = depth(m_t), depth(m_new), np.asarray(mask, bool)
     tsdf = _flat(model.tsdf, "model.tsdf")
     weight = _flat(model.weight, "model.weight")
     status = _carve_plan(
-        tsdf, weight, shape, A, rays, depth(m_t), depth(m_new), np.asarray(mask, bool),
+        tsdf, weight, shape, A, rays, m_t, m_new, mask,
         float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
         int(max_layers), bool(precise), float(noisy_layer_mm), float(noisy_max_depth_mm),
         z0, z1, reach,
     )  # fmt: skip
-    reach_from = np.zeros((H, W))
-    changed = np.asarray(mask, bool) & (status != CARVE_NONE)
-    if precise and rim_px > 0 and changed.any():
-        zt, ze = depth(m_t).astype(np.float64), depth(m_new).astype(np.float64)
+    changed = mask & (status != CARVE_NONE) if precise and rim_px > 0 else None
+    if changed is not None and changed.any():
+        zt, ze = m_t.astype(np.float64), m_new.astype(np.float64)
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rim_px + 1, 2 * rim_px + 1))
         near = cv2.dilate(changed.astype(np.uint8), k) > 0
         with np.errstate(invalid="ignore"):
-            ring = near & (status == CARVE_NONE) & ~np.asarray(mask, bool) & (ze > zt)
+            ring = near & (status == CARVE_NONE) & ~mask & (ze > zt)
             ring &= ze < zt + tol_mm  # deeper by more is a change the mask or its check refused
         reach[ring] = np.minimum(ze, zt + tol_mm)[ring]
         reach_from[ring] = zt[ring] - 0.5 * float(model.voxel_size_mm)
-        z0[ring, 0] = reach_from[ring]
         status[ring] = CARVE_RIM
     use_reset = reset is not None
     if reset is not None and (reset.shape != model.shape or reset.dtype != np.uint8):
@@ -382,7 +384,9 @@ def carve_first_layer(
             raise InvalidInputError("votes", f"expected {model.shape} uint8, got {votes.shape}")
         need_votes, vt = int(noisy_votes), _flat(votes, "votes")
     T_cam_from_voxel = invert_rigid(T) @ model.T_world_from_voxel
-    box = _deleted_voxel_box(shape, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1, reach)
+    box = _deleted_voxel_box(
+        shape, rays, np.linalg.inv(T_cam_from_voxel), status, z0, z1, reach, reach_from
+    )
     if not np.all(box[1] > box[0]):
         return status, 0
     n = _carve_apply(
@@ -391,7 +395,7 @@ def carve_first_layer(
         camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
         status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes, reach,
-        _reach_free(reach, rays, depth(m_new), 0.25 * float(model.voxel_size_mm)), reach_from,
+        _reach_free(reach, rays, m_new, 0.25 * float(model.voxel_size_mm)), reach_from,
         float(model.trunc_mm),
     )  # fmt: skip
     return status, int(n)
