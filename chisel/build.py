@@ -69,6 +69,24 @@ def preop_bounds(
     return lo, hi
 
 
+def snap_to_lattice(lo: np.ndarray, T_world_from_voxel: np.ndarray) -> np.ndarray:
+    """``lo`` moved down onto the lattice of a volume's voxel centres, axis by axis, when the
+    volume's voxels are axis-aligned (a diagonal affine, any sign); else ``lo`` unchanged.
+
+    The CT's samples then are model voxels (when both share the voxel size): the model's
+    sign at a voxel is the CT's own sample there, and a label CT of the same scan scores
+    the model at the same points. Off the lattice, nearest-neighbour resampling between the
+    grids moved the truth by up to half a voxel: on seed 5 the preoperative model's
+    tissue and the label CT's disagreed at 3 059 voxels, and at 55 on the CT's lattice."""
+    T = np.asarray(T_world_from_voxel, dtype=np.float64)
+    R = T[:3, :3]
+    if not np.allclose(R, np.diag(np.diag(R)), atol=1e-9 * np.abs(R).max()):
+        return lo
+    spacing = np.abs(np.diag(R))
+    origin = T[:3, 3]
+    return origin + np.floor((lo - origin) / spacing + 1e-9) * spacing
+
+
 def build_preop_model(
     surface: trimesh.Trimesh | None,
     camera: Camera,
@@ -108,6 +126,8 @@ def build_preop_model(
     if surface is None or len(surface.faces) == 0:
         raise InvalidInputError("surface", "CT surface has no triangle")
     lo, hi = preop_bounds(surface, P, cfg)
+    if ct is not None and ct.T_world_from_voxel is not None:
+        lo = snap_to_lattice(lo, ct.T_world_from_voxel)
     model = TsdfModel.empty(lo, hi, cfg.voxel_size_mm, cfg.trunc_mm, with_color=cfg.color)
     rc = MeshRaycaster(surface.vertices, surface.faces)
     items = list(zip(P, rgb_list, mask_list, strict=True))

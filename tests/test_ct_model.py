@@ -184,3 +184,38 @@ def test_open_mesh_is_refused() -> None:
     sphere.update_faces(np.arange(len(sphere.faces) - 4))
     with pytest.raises(InvalidInputError, match=r"closed \(watertight\)"):
         ct_from_mesh(sphere, "open.ply")
+
+
+@pytest.mark.parametrize("flip", [1.0, -1.0])
+def test_model_grid_lies_on_the_ct_lattice_and_keeps_its_labels(flip: float) -> None:
+    # A CT whose lattice sits at a fraction of a voxel from any round number (and, flipped,
+    # runs along -x and -y as a reader's LPS affine can): the model's voxels are the CT's
+    # samples, so its tissue is the label CT's at every voxel, with nothing resampled.
+    spacing, n = VOXEL_MM, 49
+    T = np.diag([flip * spacing, flip * spacing, spacing, 1.0])
+    T[:3, 3] = [-flip * 12.0 + 0.13, -flip * 12.0 - 0.07, -12.0 + 0.21]
+    ijk = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).astype(float)
+    pts = transform_points(T, ijk.reshape(-1, 3)).reshape(n, n, n, 3)
+    labels = (_sphere_sd(pts, 8.0) < 0).astype(np.uint8)
+    ct = ct_from_volume(labels, T, "label")
+    model = build_preop_model(None, CAM, _sphere_pose(), BuildConfig(VOXEL_MM, TRUNC_MM), ct=ct)
+    in_ct = np.linalg.inv(T) @ model.T_world_from_voxel
+    np.testing.assert_allclose(in_ct[:3, 3], np.round(in_ct[:3, 3]), atol=1e-6)
+    c = np.rint(transform_points(np.linalg.inv(T), _model_points(model).reshape(-1, 3))).astype(int)
+    inside = np.all((c >= 0) & (c < n), axis=1)
+    tissue_ct = labels[c[inside, 0], c[inside, 1], c[inside, 2]] == 1
+    tissue_model = (model.tsdf.reshape(-1) < 0)[inside]
+    assert inside.sum() > 50_000
+    np.testing.assert_array_equal(tissue_model, tissue_ct)
+
+
+def test_a_rotated_ct_leaves_the_grid_where_the_bounds_put_it() -> None:
+    from chisel.build import snap_to_lattice
+
+    lo = np.array([1.23, -4.56, 7.89])
+    R = trimesh.transformations.rotation_matrix(0.3, [0, 0, 1])
+    R[:3, :3] *= 0.5
+    np.testing.assert_array_equal(snap_to_lattice(lo, R), lo)
+    T = np.diag([0.5, -0.5, 0.625, 1.0])
+    T[:3, 3] = [0.1, 0.2, 0.3]
+    np.testing.assert_allclose(snap_to_lattice(lo, T), [1.1, -4.8, 7.8], atol=1e-12)
