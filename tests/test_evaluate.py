@@ -900,3 +900,45 @@ def test_removal_scores_each_method_against_its_own_preop_grid(tmp_path, monkeyp
     # One preop model for both: the sweep's model is not on its grid.
     with pytest.raises(InvalidInputError, match="not on the preoperative model's grid"):
         _removals({k: v[1] for k, v in paths.items()}, paths["ct"][0], ct_paths)
+
+
+def test_seen_free_is_what_a_frame_sees_in_front_of_its_depth() -> None:
+    """A wall at z = 10 mm with a window (depth 20 mm inside it), one camera at the origin
+    looking down +z: a point is seen free in front of the wall, behind it only through the
+    window, never within the margin of the surface, outside the image or behind the camera."""
+    from chisel.eval.volume import seen_free
+
+    cam = Camera.from_fov(64, 48, 70.0)
+    T = look_at(np.zeros(3), np.array([0.0, 0.0, 10.0]), np.array([0.0, -1.0, 0.0]))
+    rays = cam.rays_cam()
+    depth = np.full(cam.shape, 10.0, np.float32)
+    # The window: pixels whose ray meets the plane z = 10 within 2 mm of the axis.
+    window = np.max(np.abs(rays[..., :2] * 10.0), axis=-1) < 2.0
+    depth[window] = 20.0
+    depth[0, :] = np.nan  # a row that sees nothing
+    c = T[:3, 3]
+    x_side = 4.0  # off the window: its rays meet the wall 2.7-4 mm from the axis
+    pts = (
+        np.array(
+            [
+                [0.0, 0.0, 5.0],  # in front of the wall: free
+                [0.0, 0.0, 15.0],  # behind the wall, through the window: free
+                [x_side, 0.0, 15.0],  # behind the wall, off the window
+                [x_side, 0.0, 9.9],  # within the margin of the wall's surface
+                [x_side, 0.0, 9.5],  # in front of it by more than the margin: free
+                [0.0, 0.0, -5.0],  # behind the camera
+                [50.0, 0.0, 5.0],  # outside the image
+            ]
+        )
+        + c
+    )
+    got = seen_free(pts, cam, T[None], depth[None], margin_mm=0.25)
+    np.testing.assert_array_equal(got, [True, True, False, False, True, False, False])
+    # Two frames: a second one placed so that it sees the off-window point in front of its own
+    # wall; one frame that sees it free is enough.
+    T2 = T.copy()
+    T2[:3, 3] += [x_side, 0.0, 12.0]
+    got2 = seen_free(pts[2:3], cam, np.stack([T, T2]), np.stack([depth, depth]), 0.25)
+    assert got2.tolist() == [True]
+    with pytest.raises(InvalidInputError, match="depths_mm"):
+        seen_free(pts, cam, T[None], depth[None, :10], 0.25)

@@ -23,7 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from chisel.core.errors import InvalidInputError
-from chisel.core.geometry import transform_points
+from chisel.core.geometry import Camera, invert_rigid, transform_points
 from chisel.model import TsdfModel
 
 
@@ -122,3 +122,41 @@ def removal_scores(
         model_mm3=float(model_removed.sum() * v3),
         truth_mm3=float(truth_removed.sum() * v3),
     )
+
+
+def seen_free(
+    points_mm: np.ndarray,
+    camera: Camera,
+    poses: np.ndarray,
+    depths_mm: np.ndarray,
+    margin_mm: float,
+) -> np.ndarray:
+    """Which world points some frame sees as free space: (N,) bool.
+
+    A frame sees a point free when the point projects into its image (lens distortion
+    honoured, nearest pixel) and lies in front of the frame's depth there by more than
+    ``margin_mm`` (z-depth). A method that carves what its frames see cannot free a removed
+    voxel that no frame sees so: this bounds its removed-tissue Dice.
+
+    points_mm : (N, 3) world mm; poses : (F, 4, 4) ``T_world_from_cam`` (the frames' true
+    poses); depths_mm : (F, H, W) z-depth, NaN = nothing seen.
+    """
+    P = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    D = np.asarray(depths_mm)
+    if D.ndim != 3 or D.shape[1:] != camera.shape or len(D) != len(poses):
+        raise InvalidInputError(
+            "depths_mm",
+            f"expected ({len(poses)}, {camera.shape[0]}, {camera.shape[1]}), got {D.shape}",
+        )
+    H, W = camera.shape
+    out = np.zeros(len(P), dtype=bool)
+    for T, depth in zip(poses, D, strict=True):
+        uv, z = camera.project(transform_points(invert_rigid(T), P))
+        with np.errstate(invalid="ignore"):
+            u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+            ok = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        d = np.full(len(P), np.nan)
+        d[ok] = depth[v[ok].astype(np.int64), u[ok].astype(np.int64)]
+        with np.errstate(invalid="ignore"):
+            out |= ok & (d > z + margin_mm)
+    return out
