@@ -219,3 +219,6 @@ def test_a_rotated_ct_leaves_the_grid_where_the_bounds_put_it() -> None:
     T = np.diag([0.5, -0.5, 0.625, 1.0])
     T[:3, 3] = [0.1, 0.2, 0.3]
     np.testing.assert_allclose(snap_to_lattice(lo, T), [1.1, -4.8, 7.8], atol=1e-12)
+    # A float32 quaternion's rounding (1e-8 rad) is not a rotation.
+    T[:3, :3] = trimesh.transformations.rotation_matrix(1e-8, [0, 0, 1])[:3, :3] @ T[:3, :3]
+    np.testing.assert_allclose(snap_to_lattice(lo, T), [1.1, -4.8, 7.8], atol=1e-6)
