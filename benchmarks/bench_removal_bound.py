@@ -6,9 +6,8 @@ label CT, air in the step's) that no frame of the steps so far sees in front of 
 visible surface (true pose, true depth, by more than half a voxel) lies behind tissue
 that stays; only inference frees it (the rim rule, fusion's truncation band), so the
 Dice of carving exactly the seen voxels is a reference for what the views allow, not a
-strict bound. For each seed and
-step of a finished workflow run (`table` or `all`), on the preoperative model's grid
-(`chisel.eval.volume`, the evaluation's truth):
+strict bound. For each seed and step of a finished workflow run (`table` or `all`), on
+the preoperative model's grid (`chisel.eval.volume`, the evaluation's truth):
 
 - ``removed_seen_fraction``: the seen share of the removal;
 - ``dice_bound``: the Dice of carving exactly the seen voxels and nothing else;
@@ -54,9 +53,12 @@ def seed_bounds(seed_dir: Path, steps: list[int]) -> dict[str, float]:
     c0 = read_ct_volume(ct / "step_00_label.nii.gz", "label")
     margin_mm = 0.5 * float(pre.voxel_size_mm)
     out: dict[str, float] = {}
-    seen_steps: list[Sequence] = []
+    views: list[tuple[Sequence, np.ndarray, np.ndarray]] = []  # each step's frames, read once
     for k in range(1, max(steps) + 1):
-        seen_steps.append(Sequence(seed_dir / "render" / f"step_{k:02d}"))
+        seq = Sequence(seed_dir / "render" / f"step_{k:02d}")
+        if seq.true_poses is None:
+            raise SystemExit(f"{seq.path}: no true poses (a rendered sequence is needed)")
+        views.append((seq, seq.true_poses, np.stack([seq.depth_mm(i) for i in range(len(seq))])))
         if k not in steps:
             continue
         ck = read_ct_volume(ct / f"step_{k:02d}_label.nii.gz", "label")
@@ -65,11 +67,8 @@ def seed_bounds(seed_dir: Path, steps: list[int]) -> dict[str, float]:
         idx = np.argwhere(truth & (pre.tsdf < 0) & (pre.weight > 0))
         pts = transform_points(pre.T_world_from_voxel, idx.astype(np.float64))
         seen = np.zeros(len(pts), dtype=bool)
-        for seq in seen_steps:
-            if seq.true_poses is None:
-                raise SystemExit(f"{seq.path}: no true poses (a rendered sequence is needed)")
-            depths = np.stack([seq.depth_mm(i) for i in range(len(seq))])
-            seen |= seen_free(pts, seq.camera, seq.true_poses, depths, margin_mm)
+        for seq, poses, depths in views:
+            seen |= seen_free(pts, seq.camera, poses, depths, margin_mm)
         seen_mask = np.zeros(truth.shape, dtype=bool)
         seen_mask[tuple(idx[seen].T)] = True
         key = f"seed_{seed_dir.name.split('_', 1)[1]}_step_{k}"

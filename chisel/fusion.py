@@ -70,6 +70,33 @@ def nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H):
 
 
 @numba.njit(cache=True)
+def _nearest_pixels(pc, r2_max, distorted, dist, fx, fy, cx, cy, W, H):
+    out = np.full((pc.shape[0], 2), -1, dtype=np.int64)
+    for i in range(pc.shape[0]):
+        z = pc[i, 2]
+        if z <= 1e-3:
+            continue
+        u, v = nearest_pixel(
+            pc[i, 0] / z, pc[i, 1] / z, r2_max, distorted, dist, fx, fy, cx, cy, W, H
+        )
+        out[i, 0] = u
+        out[i, 1] = v
+    return out
+
+
+def nearest_pixels(points_cam_mm: np.ndarray, camera: Camera) -> np.ndarray:
+    """(N, 2) int64 pixel (u, v) of camera-frame points, as fusion and carving map a voxel
+    (:func:`nearest_pixel`); (-1, -1) behind the camera, outside the image or beyond the
+    lens model's valid radius (where the distortion polynomial folds back into the image)."""
+    pc = np.ascontiguousarray(np.asarray(points_cam_mm, dtype=np.float64).reshape(-1, 3))
+    dist = np.ascontiguousarray(camera.dist, dtype=np.float64)
+    return _nearest_pixels(
+        pc, _camera_tiles(camera, TILE_PX).r2_max, bool(np.any(dist != 0.0)), dist,
+        camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
 def _clean_depth(depth):
     # No fastmath here: this is where NaN and inf are told apart from depths; <= 0 out.
     out = np.empty(depth.shape, dtype=np.float32)

@@ -942,3 +942,21 @@ def test_seen_free_is_what_a_frame_sees_in_front_of_its_depth() -> None:
     assert got2.tolist() == [True]
     with pytest.raises(InvalidInputError, match="depths_mm"):
         seen_free(pts, cam, T[None], depth[None, :10], 0.25)
+
+
+def test_seen_free_ignores_a_point_the_lens_polynomial_folds_back_into_the_image() -> None:
+    """Barrel distortion k1 = -0.18 (the simulator's endoscope) folds points far off axis
+    back into the image: Camera.project puts a point at 65 deg from the axis inside it. The
+    pixel fusion and carving use refuses it (beyond the lens model's valid radius), so a
+    frame looking the other way does not 'see' it free."""
+    from chisel.eval.volume import seen_free
+
+    cam = Camera.from_fov(64, 48, 70.0, dist=np.array([-0.18, 0.0, 0.0, 0.0, 0.0]))
+    p_cam = np.array([np.tan(np.radians(65.0)), 0.0, 1.0]) * 5.0
+    uv, _ = cam.project(p_cam[None])
+    assert 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height  # folded back inside
+    T = np.eye(4)
+    depth = np.full(cam.shape, 100.0, np.float32)  # a far wall: anything in view is free
+    assert seen_free(p_cam[None], cam, T[None], depth[None], 0.25).tolist() == [False]
+    on_axis = np.array([[0.0, 0.0, 5.0]])
+    assert seen_free(on_axis, cam, T[None], depth[None], 0.25).tolist() == [True]

@@ -24,6 +24,7 @@ from scipy import ndimage
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid, transform_points
+from chisel.fusion import nearest_pixels
 from chisel.model import TsdfModel
 
 
@@ -133,10 +134,11 @@ def seen_free(
 ) -> np.ndarray:
     """Which world points some frame sees as free space: (N,) bool.
 
-    A frame sees a point free when the point projects into its image (lens distortion
-    honoured, nearest pixel) and lies in front of the frame's depth there by more than
-    ``margin_mm`` (z-depth). A method that carves what its frames see cannot free a removed
-    voxel that no frame sees so: this bounds its removed-tissue Dice.
+    A frame sees a point free when the point projects into its image (the pixel fusion and
+    carving map a voxel to, :func:`chisel.fusion.nearest_pixels`) and lies in front of the
+    frame's depth there by more than ``margin_mm`` (z-depth). A removed voxel that no frame
+    sees so lies behind tissue that stays: only inference frees it, so the seen voxels are a
+    reference for what a method that carves what it sees can reach.
 
     points_mm : (N, 3) world mm; poses : (F, 4, 4) ``T_world_from_cam`` (the frames' true
     poses); depths_mm : (F, H, W) z-depth, NaN = nothing seen.
@@ -148,15 +150,13 @@ def seen_free(
             "depths_mm",
             f"expected ({len(poses)}, {camera.shape[0]}, {camera.shape[1]}), got {D.shape}",
         )
-    H, W = camera.shape
     out = np.zeros(len(P), dtype=bool)
     for T, depth in zip(poses, D, strict=True):
-        uv, z = camera.project(transform_points(invert_rigid(T), P))
-        with np.errstate(invalid="ignore"):
-            u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
-            ok = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        pc = transform_points(invert_rigid(T), P)
+        uv = nearest_pixels(pc, camera)
+        ok = uv[:, 0] >= 0
         d = np.full(len(P), np.nan)
-        d[ok] = depth[v[ok].astype(np.int64), u[ok].astype(np.int64)]
+        d[ok] = depth[uv[ok, 1], uv[ok, 0]]
         with np.errstate(invalid="ignore"):
-            out |= ok & (d > z + margin_mm)
+            out |= ok & (d > pc[:, 2] + margin_mm)
     return out
