@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import trimesh
 
 from chisel.cli.args import trainer_options
@@ -29,9 +31,11 @@ from chisel.depth.change_source import export_change_aware
 from chisel.depth.change_train import ChangeTrainConfig, train_change_aware
 from chisel.depth.data import held_out_groups
 from chisel.depth.prior_data import (
+    StepSequenceRef,
     add_synthetic_removal,
     build_prior_set,
     check_change_training_seeds,
+    phantom_step_mesh,
     preop_prior_set,
     read_step_dataset,
 )
@@ -56,6 +60,8 @@ TRAIN_OPTS = [
     "threads",
     "device",
     "note",
+    "prior_surface",
+    "init",
 ]
 FINETUNE_OPTS = [
     "kind",
@@ -91,13 +97,31 @@ def train(args: argparse.Namespace) -> int:
     train_refs = [r for r in refs if r.seed not in val_seeds]
     val_refs = [r for r in refs if r.seed in val_seeds]
     log.info("train seeds %s, validation seeds %s", sorted(set(seeds) - val_seeds), val_seeds)
-    pairs = build_prior_set(train_refs, frame_step=args.frame_step)
-    val_pairs = build_prior_set(val_refs, frame_step=args.frame_step) if val_refs else None
+    init = None
+    if args.init is not None:
+        if args.widths is not None:
+            raise InvalidInputError("--widths", "the network of --init keeps its own widths")
+        init, _ = load_change_checkpoint(Path(args.init))
+    surface_of = (
+        _model_surfaces(refs, args.frame_step)
+        if args.prior_surface == "model"
+        else phantom_step_mesh
+    )
+    pairs = build_prior_set(train_refs, frame_step=args.frame_step, surface_of=surface_of)
+    val_pairs = (
+        build_prior_set(val_refs, frame_step=args.frame_step, surface_of=surface_of)
+        if val_refs
+        else None
+    )
     net_config = ChangeNetConfig(widths=args.widths or ChangeNetConfig().widths)
-    result = train_change_aware(pairs, cfg, net_config, val_pairs=val_pairs, progress=True)
+    result = train_change_aware(
+        pairs, cfg, net_config, init=init, val_pairs=val_pairs, progress=True
+    )
     info = {
         "kind": "train",
         "command": canonical_command(args, TRAIN_OPTS),
+        "init": None if args.init is None else str(args.init),
+        "prior_surface": args.prior_surface,
         "train_phantom_seeds": sorted(set(seeds) - val_seeds),
         "val_phantom_seeds": sorted(val_seeds),
         "train_sequences": [str(r.path) for r in train_refs],
@@ -119,6 +143,46 @@ def train(args: argparse.Namespace) -> int:
     summary = {"checkpoint": str(args.out), "val_metrics": result.val_metrics}
     write_summary(summary | {"train_seconds": info["train_seconds"]})
     return 0
+
+
+def _model_surfaces(
+    refs: list[StepSequenceRef], frame_step: int
+) -> Callable[[Path, int], trimesh.Trimesh]:
+    """``surface_of`` for :func:`build_prior_set`: each phantom step's mesh as a CT-built
+    model holds it (:func:`chisel.build.voxel_copies`, the default voxel and truncation), on
+    one grid per phantom over what its frames see: the box of their true depth, back-
+    projected at the true poses, grown by the build's margin (the whole CT's grid would
+    cost ~20x the signed distances)."""
+    from chisel.build import BuildConfig, voxel_copies  # noqa: PLC0415
+
+    margin = BuildConfig.margin_mm
+    boxes: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
+    last_step: dict[Path, int] = {}
+    for ref in refs:
+        seq = Sequence(ref.path)
+        assert seq.true_poses is not None  # build_prior_set refuses such a sequence first
+        last_step[ref.phantom_dir] = max(last_step.get(ref.phantom_dir, 0), ref.step)
+        for i in range(0, len(seq), max(frame_step, 1)):
+            T = seq.true_poses[i]
+            cam_pts = seq.camera.backproject(seq.depth_mm(i))[::4, ::4].reshape(-1, 3)
+            cam_pts = cam_pts[np.isfinite(cam_pts).all(axis=1)]
+            pts = np.vstack([cam_pts @ T[:3, :3].T + T[:3, 3], T[None, :3, 3]])
+            lo, hi = boxes.get(ref.phantom_dir, (pts.min(axis=0), pts.max(axis=0)))
+            boxes[ref.phantom_dir] = (
+                np.minimum(lo, pts.min(axis=0)),
+                np.maximum(hi, pts.max(axis=0)),
+            )
+    cache: dict[Path, list[trimesh.Trimesh]] = {}
+
+    def surface_of(phantom_dir: Path, step: int) -> trimesh.Trimesh:
+        if phantom_dir not in cache:
+            lo, hi = boxes[phantom_dir]
+            meshes = [phantom_step_mesh(phantom_dir, k) for k in range(last_step[phantom_dir] + 1)]
+            cache.clear()  # build_prior_set goes phantom by phantom: keep one in memory
+            cache[phantom_dir] = voxel_copies(meshes, lo - margin, hi + margin)
+        return cache[phantom_dir][step]
+
+    return surface_of
 
 
 def _prior_surface(args: argparse.Namespace) -> tuple[trimesh.Trimesh, Literal["ct", "model"]]:

@@ -70,8 +70,10 @@ def _change_aware(args: argparse.Namespace) -> bool:
             args.steps = 600 if args.depth_command == "train" else 60
         if getattr(args, "eval_every", 0) is None:
             args.eval_every = 100
+        if getattr(args, "prior_surface", "") is None:
+            args.prior_surface = "mesh"
         return True
-    for flag in ("steps", "mesh", "model", "eval_every"):
+    for flag in ("steps", "mesh", "model", "eval_every", "prior_surface", "init"):
         if getattr(args, flag, None) is not None:
             raise InvalidInputError(
                 "--" + flag.replace("_", "-"), "is an option of --kind change-aware only"
@@ -374,6 +376,19 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         help="change-aware only: validate every N steps, keep the best (default 100)",
+    )
+    t.add_argument(
+        "--prior-surface",
+        choices=("mesh", "model"),
+        default=None,
+        help="change-aware only: the surface rendered as prior and target: the phantom's mesh "
+        "(default) or what a CT-built model holds of it (0.5 mm voxels), as the updater "
+        "renders M_t",
+    )
+    t.add_argument(
+        "--init",
+        default=None,
+        help="change-aware only: start from this checkpoint's weights (default: from scratch)",
     )
     t.add_argument(
         "--blocks", type=_ints, default=None, help="residual blocks per stage, e.g. 1,1,1,2,2"

@@ -35,6 +35,7 @@ of the surface in the prior only, the frame and target unchanged).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -156,11 +157,15 @@ def build_prior_set(
     threshold_mm: float = CHANGE_THRESHOLD_MM,
     min_valid_fraction: float = 0.05,
     target_pose: Literal["tracked", "true"] = "tracked",
+    surface_of: Callable[[Path, int], trimesh.Trimesh] = phantom_step_mesh,
 ) -> PriorSet:
     """Render every ``frame_step``-th frame's prior and change label; see the module doc.
 
     Frames whose prior and target overlap on fewer than ``min_valid_fraction`` of the
-    pixels are skipped. Every sequence must share one image size.
+    pixels are skipped. Every sequence must share one image size. ``surface_of(phantom_dir,
+    step)`` gives the surface rendered for a step: the phantom's mesh (default), or what a
+    model holds of it (``chisel depth train --prior-surface model``), for prior and target
+    alike, so that unchanged tissue stays exactly the prior.
     """
     if target_pose not in ("tracked", "true"):
         raise InvalidInputError("target_pose", f"expected 'tracked' or 'true', got {target_pose!r}")
@@ -191,13 +196,13 @@ def build_prior_set(
     sources: list[str] = []
     n = 0
     for ref, seq, true_poses, idx in checked:
-        mesh = phantom_step_mesh(ref.phantom_dir, max(ref.step - 1, 0))
+        mesh = surface_of(ref.phantom_dir, max(ref.step - 1, 0))
         rc = MeshRaycaster(mesh.vertices, mesh.faces)
         prior = rc.render_depths(seq.camera, seq.poses[idx])
         if target_pose == "true":
             reference = rc.render_depths(seq.camera, true_poses[idx])
         else:
-            now = phantom_step_mesh(ref.phantom_dir, ref.step)
+            now = surface_of(ref.phantom_dir, ref.step)
             reference = prior
             tracked_now = MeshRaycaster(now.vertices, now.faces).render_depths(
                 seq.camera, seq.poses[idx]
