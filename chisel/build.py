@@ -212,7 +212,8 @@ def voxel_copies(
         if np.all(hi_i > lo_i):
             T = grid.T_world_from_voxel.copy()
             T[:3, 3] += lo_i * voxel_size_mm
-            part, _covered = ct_tsdf(ct, T, tuple(int(n) for n in hi_i - lo_i), trunc_mm)
+            nx, ny, nz = (int(n) for n in hi_i - lo_i)
+            part, _covered = ct_tsdf(ct, T, (nx, ny, nz), trunc_mm)
             if tsdf is None:
                 tsdf = part
             else:
