@@ -216,8 +216,7 @@ def voxel_copies(
             part, _covered = ct_tsdf(ct, T, (nx, ny, nz), trunc_mm)
             if tsdf is None:
                 tsdf = part
-            else:
-                tsdf = tsdf.copy()
+            else:  # in place: each step's mesh is extracted before the next step writes
                 tsdf[lo_i[0] : hi_i[0], lo_i[1] : hi_i[1], lo_i[2] : hi_i[2]] = part
         assert tsdf is not None
         model = replace(grid, tsdf=tsdf, weight=np.ones(grid.shape, np.float32), build="ct")

@@ -20,6 +20,7 @@ import trimesh
 from chisel.cli.args import trainer_options
 from chisel.cli.provenance import canonical_command, environment, finetune_info, write_summary
 from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import transform_points
 from chisel.depth.change_aware import (
     ChangeAwarePredictor,
     ChangeNetConfig,
@@ -166,7 +167,7 @@ def _model_surfaces(
             T = seq.true_poses[i]
             cam_pts = seq.camera.backproject(seq.depth_mm(i))[::4, ::4].reshape(-1, 3)
             cam_pts = cam_pts[np.isfinite(cam_pts).all(axis=1)]
-            pts = np.vstack([cam_pts @ T[:3, :3].T + T[:3, 3], T[None, :3, 3]])
+            pts = np.vstack([transform_points(T, cam_pts), T[None, :3, 3]])
             lo, hi = boxes.get(ref.phantom_dir, (pts.min(axis=0), pts.max(axis=0)))
             boxes[ref.phantom_dir] = (
                 np.minimum(lo, pts.min(axis=0)),
