@@ -52,7 +52,7 @@ from chisel.depth.prior_data import build_prior_set, phantom_step_mesh, read_ste
 from chisel.io.sequence import Frame, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_render import cpu_simd  # noqa: E402
+from host import cpu_simd  # noqa: E402
 
 
 def _median_scaled(pred: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -39,7 +39,7 @@ from chisel.eval.step import evaluate_step  # noqa: E402
 from sim.dataset import parse_seeds  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from bench_render import cpu_simd  # noqa: E402
+from host import cpu_simd  # noqa: E402
 
 
 def build_floor_mesh(ct: Path, preop: Path, out: Path, model: dict) -> Path:

@@ -54,7 +54,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_render import cpu_simd, rss_mb  # noqa: E402
+from host import cpu_simd, rss_mb  # noqa: E402
 
 from sim.config import SimConfig, replace_in  # noqa: E402
 from sim.dataset import build_dataset, parse_seeds, seed_config  # noqa: E402

@@ -41,7 +41,7 @@ from chisel.model import TsdfModel  # noqa: E402
 from sim.dataset import parse_seeds  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from bench_render import cpu_simd  # noqa: E402
+from host import cpu_simd  # noqa: E402
 
 EXACT = "depth_ablation"
 

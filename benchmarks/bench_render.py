@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import sys
 import tempfile
 import time
@@ -36,25 +35,10 @@ from sim.pipeline import _texture_box, path_target
 from sim.render import MeshRenderer
 from sim.synthetic import write_toy_phantom
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from host import cpu_simd, rss_mb  # noqa: E402
+
 CORES = len(os.sched_getaffinity(0))
-
-
-def cpu_simd() -> str:
-    """The widest x86 vector extension the CPU reports (Linux), which sets drjit's lane
-    count and Embree's packet size: figures from hosts that differ here do not compare."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            flags = next((ln.split(":", 1)[1].split() for ln in fh if ln.startswith("flags")), [])
-    except OSError:
-        return "unknown"
-    return next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "unknown")
-
-
-def rss_mb() -> float:
-    """Current resident set size in MiB (Linux /proc)."""
-    with open("/proc/self/statm") as fh:
-        pages = int(fh.read().split()[1])
-    return pages * resource.getpagesize() / 2**20
 
 
 def per_call_s(call: Callable[[int], object], n: int) -> tuple[float, float]:

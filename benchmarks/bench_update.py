@@ -63,7 +63,7 @@ from chisel.update_config import UpdateConfig
 from chisel.updater import ChiselUpdater
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_render import cpu_simd  # noqa: E402
+from host import cpu_simd  # noqa: E402
 
 
 def _pose_error(shift_mm: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:

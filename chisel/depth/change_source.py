@@ -9,6 +9,8 @@ rule). Its depth is metric (``is_metric = True``): no scale is solved.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,25 @@ from chisel.depth.checkpoint import KIND_MONOCULAR, CheckpointError, nonfinite_t
 from chisel.depth.infer import is_torchscript_file
 from chisel.depth.train import resolve_device
 from chisel.io.sequence import Frame
+
+
+@contextmanager
+def _fp32_convolutions(device: torch.device) -> Iterator[None]:
+    """Full float32 convolutions on CUDA while the network runs.
+
+    torch lets cuDNN round convolutions to TF32 by default. The network's change decision
+    is a threshold (p >= 0.5), and on an H200 TF32 flipped it at 52 of 655 360 pixels of
+    8 frames, up to 9 mm apart; in float32 the GPU gave the CPU's depths to 1e-4 mm with
+    no flip (docs/depth.md, "On a GPU"). A network this small loses nothing by it."""
+    if device.type != "cuda":
+        yield
+        return
+    previous = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32 = previous
 
 
 class ChangeAwareDepthSource:
@@ -70,7 +91,7 @@ class ChangeAwareDepthSource:
                 f"{prior.shape[0] if prior.ndim else '?'} but the frame is "
                 f"{rgb.shape[1]}x{rgb.shape[0]}: render the model at the frame's own size",
             )
-        with torch.inference_mode():
+        with torch.inference_mode(), _fp32_convolutions(self.device):
             depth, p = self.module(
                 torch.from_numpy(np.ascontiguousarray(rgb))[None].to(self.device),
                 torch.from_numpy(np.ascontiguousarray(prior))[None].to(self.device),

@@ -241,16 +241,24 @@ def change_metrics(
 
 @torch.inference_mode()
 def evaluate_pairs(
-    predictor: ChangeAwarePredictor, pairs: PriorSet, batch_size: int = 8
+    predictor: ChangeAwarePredictor,
+    pairs: PriorSet,
+    batch_size: int = 8,
+    device: torch.device | str = "cpu",
 ) -> dict[str, float]:
-    """Mean per-frame abs-rel near the change and on unchanged tissue (NaN-frames skipped)."""
+    """Mean per-frame abs-rel near the change and on unchanged tissue (NaN-frames skipped).
+
+    device : where ``predictor`` is; the pairs stay in host memory and go there by batch."""
+    device = torch.device(device)
     was = predictor.training
     predictor.eval()
     near, unch = [], []
     for a in range(0, len(pairs), batch_size):
-        depth, _ = predictor(pairs.rgb[a : a + batch_size], pairs.prior_mm[a : a + batch_size])
+        depth, _ = predictor(
+            pairs.rgb[a : a + batch_size].to(device), pairs.prior_mm[a : a + batch_size].to(device)
+        )
         for d, t, ch in zip(
-            depth.numpy(), pairs.target_mm[a : a + batch_size].numpy(),
+            depth.float().cpu().numpy(), pairs.target_mm[a : a + batch_size].numpy(),
             pairs.changed[a : a + batch_size].numpy(), strict=True,
         ):  # fmt: skip
             m = change_metrics(d, t, ch)
@@ -321,7 +329,7 @@ def train_change_aware(
                 row["lr"] = float(opt.param_groups[0]["lr"])
                 row["seconds"] = time.perf_counter() - t0
                 if val_pairs is not None and len(val_pairs) > 0:
-                    m = evaluate_pairs(predictor, val_pairs)
+                    m = evaluate_pairs(predictor, val_pairs, device=device)
                     set_train_mode(net, cfg.freeze_batchnorm)
                     row.update({f"val_{k}": float(v) for k, v in m.items()})
                     best.offer(m["score"], step, net)
