@@ -67,6 +67,18 @@ def test_change_aware_finetune_prior_reaches_the_command(
     assert finetune and all(expect in ln for ln in finetune), finetune
 
 
+def test_finetune_seed_offset_reaches_both_finetunings(tmp_path: Path) -> None:
+    cfg = tmp_path / "seed.yaml"
+    cfg.write_text(yaml.safe_dump({"depth": {"finetune_seed_offset": 100}}))
+    configs = ["--configfile", str(ROOT / "config" / "config.yaml"), str(cfg)]
+    r = run(["-n", "-p", "--cores", "2", *configs], tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    finetunes = [ln for ln in r.stdout.splitlines() if "chisel depth finetune" in ln]
+    assert len(finetunes) == 2 and all("--seed 100 " in ln for ln in finetunes), finetunes
+    cfg.write_text(yaml.safe_dump({"depth": {"finetune_seed_offset": -1}}))
+    assert run(["-n", *configs], tmp_path).returncode != 0
+
+
 def test_render_sim_section_reaches_sim_render_which_checks_it(tmp_path: Path) -> None:
     cfg = tmp_path / "sim.yaml"
     cfg.write_text(yaml.safe_dump({"render": {"sim": {"tools": {"fraction": 1.5}}}}))

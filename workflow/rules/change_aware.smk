@@ -33,6 +33,7 @@ rule finetune_change_aware:
     params:
         steps=DC.get("change_aware_finetune_steps", 60),
         prior_flag=CA_FINETUNE_FLAG,
+        seed=finetune_seed,
     threads: 2
     conda:
         ENV
@@ -41,7 +42,7 @@ rule finetune_change_aware:
     shell:
         "python -m chisel depth finetune --kind change-aware --checkpoint {input.base} "
         "--sequence $(dirname {input.index})/preop {params.prior_flag} {input.prior} --steps {params.steps} "
-        "--seed {wildcards.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
+        "--seed {params.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
 
 
 rule update_change_aware:

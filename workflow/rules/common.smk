@@ -88,6 +88,12 @@ MC = config["model"]
 DC = config.get("depth", {})
 
 
+def finetune_seed(wildcards):
+    """The seed of a phantom's per-patient fine-tunings: the phantom seed, plus
+    config depth.finetune_seed_offset (a second value measures the rows' own spread)."""
+    return int(wildcards.seed) + int(DC.get("finetune_seed_offset", 0))
+
+
 def base_checkpoint():
     """The configured depth checkpoint; "default" is the one shipped with the package."""
     if DC.get("checkpoint", "default") == "default":

@@ -91,6 +91,7 @@ rule finetune:
     params:
         epochs=DC.get("finetune_epochs", 3),
         enabled=DC.get("finetune", True),
+        seed=finetune_seed,
     threads: 2
     conda:
         ENV
@@ -98,7 +99,7 @@ rule finetune:
         mem_mb=MEM_MB,
     shell:
         "python -m chisel depth finetune --checkpoint {input.base} --sequence {input.seq} --epochs {params.epochs} "
-        "--seed {wildcards.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
+        "--seed {params.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
 
 
 rule predict_depth:
