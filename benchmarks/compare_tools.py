@@ -13,8 +13,15 @@ Reads two finished default-target runs of the workflow (``snakemake --cores 2`` 
 * frames used by each update and the mean changed-pixel fraction of its frames, tool and
   tool-free frames apart (``update.json``).
 
-    .venv/bin/python benchmarks/compare_tools.py [--free results/default] [--tools results/tools]
-        [--seed 0] [--json OUT]
+Several runs of each (``--free A B --tools C D``: the same renders, the per-patient
+fine-tunings seeded apart with ``depth.finetune_seed_offset``) compare the means over the
+runs, and the tool-free runs' own spread per step (largest / smallest) is printed beside:
+a network row moves by itself by more than 10 % at some steps when only its fine-tuning's
+seed changes (docs/results.md, twenty-first session). Tool statistics and update counts
+are read from the first run of each.
+
+    .venv/bin/python benchmarks/compare_tools.py [--free results/default ...]
+        [--tools results/tools ...] [--seed 0] [--json OUT]
 """
 
 from __future__ import annotations
@@ -78,6 +85,11 @@ def _means(metrics: dict) -> dict[tuple[int, str], float]:
     }
 
 
+def _mean_over_runs(runs: list[dict[tuple[int, str], float]]) -> dict[tuple[int, str], float]:
+    """Each (step, method) error averaged over the runs that all hold it."""
+    return {k: float(np.mean([r[k] for r in runs])) for k in runs[0] if all(k in r for r in runs)}
+
+
 def update_stats(report: Path, tool_frames: set[int]) -> dict:
     rep = json.loads(report.read_text())
     frames = rep["frames"]
@@ -101,15 +113,22 @@ def update_stats(report: Path, tool_frames: set[int]) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--free", type=Path, default=Path("results/default"))
-    p.add_argument("--tools", type=Path, default=Path("results/tools"))
+    p.add_argument("--free", type=Path, nargs="+", default=[Path("results/default")])
+    p.add_argument("--tools", type=Path, nargs="+", default=[Path("results/tools")])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, help="also write everything printed as JSON")
     a = p.parse_args(argv)
     sub = f"seed_{a.seed}"
-    free = json.loads((a.free / sub / "base" / "metrics.json").read_text())
-    tools = json.loads((a.tools / sub / "base" / "metrics.json").read_text())
-    mf, mt = _means(free), _means(tools)
+    free_runs = [
+        _means(json.loads((r / sub / "base" / "metrics.json").read_text())) for r in a.free
+    ]
+    mf, mt = (
+        _mean_over_runs(free_runs),
+        _mean_over_runs(
+            [_means(json.loads((r / sub / "base" / "metrics.json").read_text())) for r in a.tools]
+        ),
+    )
+    free_dir, tools_dir = a.free[0], a.tools[0]
     steps = sorted({s for s, _ in mt})
     methods = [
         m
@@ -124,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     all_tool_frames: dict[int, set[int]] = {}
     for s in steps:
-        st = tool_stats(a.tools / sub / "render" / f"step_{s:02d}")
+        st = tool_stats(tools_dir / sub / "render" / f"step_{s:02d}")
         all_tool_frames[s] = set(st["tool_frames"])
         out["tools"][s] = st
         print(
@@ -167,6 +186,14 @@ def main(argv: list[str] | None = None) -> int:
             "pass": not worse,
         }
         print(f"{m} | " + " | ".join(cells) + f" | {verdict}")
+    if len(free_runs) > 1:
+        print(f"\n# the {len(free_runs)} tool-free runs' own spread: largest / smallest error")
+        for m in methods:
+            spread = [
+                max(r[(s, m)] for r in free_runs) / min(r[(s, m)] for r in free_runs) for s in steps
+            ]
+            out["rows"][m]["free_spread"] = spread
+            print(f"{m} | " + " | ".join(f"{x:.2f}x" for x in spread))
 
     print(
         "\n# updates: frames used (tools run: of them with a tool), mean changed-pixel fraction tool / tool-free frames"
@@ -175,8 +202,8 @@ def main(argv: list[str] | None = None) -> int:
         if m == "no_update":
             continue
         for s in steps:
-            rf = a.free / sub / "base" / m / f"step_{s:02d}" / "update.json"
-            rt = a.tools / sub / "base" / m / f"step_{s:02d}" / "update.json"
+            rf = free_dir / sub / "base" / m / f"step_{s:02d}" / "update.json"
+            rt = tools_dir / sub / "base" / m / f"step_{s:02d}" / "update.json"
             if not (rf.exists() and rt.exists()):
                 continue
             uf = update_stats(rf, all_tool_frames[s])

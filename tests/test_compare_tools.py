@@ -80,3 +80,27 @@ def test_compare_tools_ratios_verdict_and_tool_statistics(tmp_path: Path, capsys
     assert st["tool_frame_fraction"] == 0.25
     assert abs(st["mean_tool_px_fraction"] - 0.1) < 1e-12
     assert got["tools"]["all"]["tool_frames"] == 2
+
+
+def test_several_runs_compare_their_means_and_print_the_tool_free_spread(
+    tmp_path: Path, capsys
+) -> None:
+    # Two tool-free runs 0.5 / 0.7 mm at step 2 (their own spread 1.40x), two tools runs
+    # 0.6 / 0.66 mm: the means 0.6 and 0.63 give 1.05x, where either pair alone would fail.
+    _run(tmp_path / "f0", {"no_update": [1.0, 2.0], "updated": [0.5, 0.5]}, False)
+    _run(tmp_path / "f1", {"no_update": [1.0, 2.0], "updated": [0.5, 0.7]}, False)
+    _run(tmp_path / "t0", {"no_update": [1.0, 2.0], "updated": [0.5, 0.6]}, True)
+    _run(tmp_path / "t1", {"no_update": [1.0, 2.0], "updated": [0.5, 0.66]}, True)
+    out_json = tmp_path / "out.json"
+    rc = _load().main(
+        ["--free", str(tmp_path / "f0"), str(tmp_path / "f1"),
+         "--tools", str(tmp_path / "t0"), str(tmp_path / "t1"), "--json", str(out_json)]
+    )  # fmt: skip
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "updated | 0.500, 0.500, 1.00x | 0.600, 0.630, 1.05x | PASS" in text
+    assert "tool-free runs' own spread" in text
+    assert "updated | 1.00x | 1.40x" in text
+    got = json.loads(out_json.read_text())
+    assert got["rows"]["updated"]["free_spread"] == [1.0, 0.7 / 0.5]
+    assert got["tools"]["1"]["tool_frames"] == [1]  # read from the first tools run
