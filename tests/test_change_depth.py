@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from wall_scenes import H, W, wall_pairs, wall_scene
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
@@ -42,43 +43,7 @@ from chisel.render import ModelRenderer
 from chisel.update_config import UpdateConfig
 from chisel.updater import ChiselUpdater
 
-H, W = 32, 40
 TINY = ChangeNetConfig(widths=(8, 12), input_scale=1.0)
-
-
-def wall_scene(rng: np.random.Generator, window: bool) -> tuple[np.ndarray, ...]:
-    """A tilted textured wall (the prior) and, optionally, a window through it onto a
-    farther, darker wall: returns (rgb uint8, prior_mm, target_mm, window mask)."""
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
-    z0 = rng.uniform(10.0, 25.0)
-    prior = (
-        z0 + rng.uniform(-0.05, 0.05) * (xx - W / 2) + rng.uniform(-0.05, 0.05) * (yy - H / 2)
-    ).astype(np.float32)
-    target = prior.copy()
-    win = np.zeros((H, W), bool)
-    if window:
-        h, w = rng.integers(8, 16), rng.integers(8, 18)
-        y, x = rng.integers(0, H - h), rng.integers(0, W - w)
-        win[y : y + h, x : x + w] = True
-        target[win] += rng.uniform(4.0, 8.0)
-    phase = rng.uniform(0, 2 * np.pi)
-    texture = 0.5 + 0.2 * np.sin(0.7 * xx + phase) * np.cos(0.5 * yy)
-    shade = (z0 / target) ** 2  # an endoscope's light falls off with distance
-    gray = np.clip(texture * shade, 0.0, 1.0)
-    rgb = (np.stack([gray, 0.6 * gray, 0.5 * gray], axis=-1) * 255).astype(np.uint8)
-    return rgb, prior, target, win
-
-
-def wall_pairs(n: int, seed: int) -> PriorSet:
-    rng = np.random.default_rng(seed)
-    rows = [wall_scene(rng, window=i % 4 != 0) for i in range(n)]
-    return PriorSet(
-        rgb=torch.from_numpy(np.stack([r[0] for r in rows])),
-        prior_mm=torch.from_numpy(np.stack([r[1] for r in rows])),
-        target_mm=torch.from_numpy(np.stack([r[2] for r in rows])),
-        changed=torch.from_numpy(np.stack([r[3] for r in rows])),
-        sources=[f"wall#{i}" for i in range(n)],
-    )
 
 
 @pytest.fixture(scope="module")
@@ -371,7 +336,6 @@ def test_synthetic_removal_puts_a_lamella_in_front_in_the_prior_only() -> None:
     import torch
 
     from chisel.core.errors import InvalidInputError
-    from chisel.depth.change_train import PriorSet
     from chisel.depth.prior_data import SYNTHETIC_REMOVAL_MM, add_synthetic_removal
 
     n, H, W = 6, 40, 48

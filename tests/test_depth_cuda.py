@@ -2,9 +2,9 @@
 
 CI has no GPU, so these run only where one is lent (docs/depth.md, "On a GPU"). Each
 compares the GPU against the CPU, an independent implementation of the same convolutions
-(cuDNN against oneDNN), or against the loss before training. Self-contained on purpose:
-only torch, numpy and ``chisel.depth`` are imported, so the file runs on a machine that
-has a GPU build of torch and none of the renderer's packages
+(cuDNN against oneDNN), or against the loss before training. Only torch, numpy,
+``chisel.depth`` and ``tests/wall_scenes.py`` are imported, so the file runs on a machine
+that has a GPU build of torch and none of the renderer's packages
 (``pytest --noconftest tests/test_depth_cuda.py``).
 """
 
@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from wall_scenes import wall_pairs
 
 from chisel.depth import DEFAULT_CHECKPOINT, load_depth_source
 from chisel.depth.change_aware import (
@@ -33,42 +34,8 @@ TINY_CHANGE = ChangeNetConfig(widths=(8, 12), input_scale=1.0)
 TINY_MONO = DepthNetConfig(widths=(8, 12), blocks=(1, 1), input_scale=1.0)
 
 
-def walls(n: int, h: int, w: int, seed: int) -> PriorSet:
-    """Tilted textured walls (the prior), three of four with a window onto a farther wall
-    (the target), lit by a light at the camera (brightness ~ 1 / depth^2)."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    rgbs, priors, targets, wins = [], [], [], []
-    for i in range(n):
-        z0 = rng.uniform(10.0, 25.0)
-        tilt = rng.uniform(-0.05, 0.05, 2) * 40.0 / w
-        prior = (z0 + tilt[0] * (xx - w / 2) + tilt[1] * (yy - h / 2)).astype(np.float32)
-        target = prior.copy()
-        win = np.zeros((h, w), bool)
-        if i % 4:
-            hh, ww = int(rng.integers(h // 4, h // 2)), int(rng.integers(w // 5, w // 2))
-            y, x = int(rng.integers(0, h - hh)), int(rng.integers(0, w - ww))
-            win[y : y + hh, x : x + ww] = True
-            target[win] += rng.uniform(4.0, 8.0)
-        texture = 0.5 + 0.2 * np.sin(0.7 * xx * 40 / w + rng.uniform(0, 6.3)) * np.cos(
-            0.5 * yy * 32 / h
-        )
-        gray = np.clip(texture * (z0 / target) ** 2, 0.0, 1.0)
-        rgbs.append((np.stack([gray, 0.6 * gray, 0.5 * gray], -1) * 255).astype(np.uint8))
-        priors.append(prior)
-        targets.append(target)
-        wins.append(win)
-    return PriorSet(
-        rgb=torch.from_numpy(np.stack(rgbs)),
-        prior_mm=torch.from_numpy(np.stack(priors)),
-        target_mm=torch.from_numpy(np.stack(targets)),
-        changed=torch.from_numpy(np.stack(wins)),
-        sources=[f"wall#{i}" for i in range(n)],
-    )
-
-
 def test_change_aware_trains_and_validates_on_cuda() -> None:
-    pairs, val = walls(32, 32, 40, seed=1), walls(8, 32, 40, seed=2)
+    pairs, val = wall_pairs(32, seed=1), wall_pairs(8, seed=2)
     cfg = ChangeTrainConfig(
         steps=60, batch_size=8, lr=1e-2, seed=0, num_threads=1, eval_every=30, device="cuda",
         flips=False, photometric=0.0,
@@ -92,7 +59,7 @@ def test_monocular_trains_and_validates_on_cuda() -> None:
     def frames(p: PriorSet) -> FrameSet:
         return FrameSet(p.rgb, p.target_mm, torch.ones_like(p.changed), p.sources)
 
-    train_set, val = frames(walls(32, 32, 40, seed=3)), frames(walls(8, 32, 40, seed=4))
+    train_set, val = frames(wall_pairs(32, seed=3)), frames(wall_pairs(8, seed=4))
     cfg = TrainConfig(epochs=6, batch_size=8, lr=1e-2, augment=None, num_threads=1, device="cuda")
     result = train(train_set, cfg, TINY_MONO, val_frames=val)
     assert all(p.device.type == "cpu" for p in result.net.parameters())
@@ -101,7 +68,7 @@ def test_monocular_trains_and_validates_on_cuda() -> None:
 
 
 def test_shipped_monocular_network_agrees_on_cuda_and_cpu() -> None:
-    rgb = walls(4, 256, 320, seed=5).rgb.numpy()
+    rgb = wall_pairs(4, seed=5, h=256, w=320).rgb.numpy()
     cpu = load_depth_source(DEFAULT_CHECKPOINT, device="cpu").predict_batch(rgb)
     gpu = load_depth_source(DEFAULT_CHECKPOINT, device="cuda").predict_batch(rgb)
     rel = np.abs(gpu / cpu - 1.0)
@@ -111,7 +78,7 @@ def test_shipped_monocular_network_agrees_on_cuda_and_cpu() -> None:
 
 
 def test_shipped_change_aware_network_agrees_on_cuda_and_cpu() -> None:
-    pairs = walls(4, 256, 320, seed=6)
+    pairs = wall_pairs(4, seed=6, h=256, w=320)
     sources = [
         load_change_aware_source(DEFAULT_CHANGE_CHECKPOINT, device=d) for d in ("cpu", "cuda")
     ]
