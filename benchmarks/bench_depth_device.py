@@ -35,7 +35,7 @@ import torch
 
 from chisel.depth import DEFAULT_CHECKPOINT, load_depth_source
 from chisel.depth.change_aware import DEFAULT_CHANGE_CHECKPOINT, load_change_checkpoint
-from chisel.depth.change_source import load_change_aware_source
+from chisel.depth.change_source import fp32_convolutions, load_change_aware_source
 from chisel.depth.change_train import ChangeTrainConfig, PriorSet, train_change_aware
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -115,11 +115,8 @@ def main() -> None:
         return s.predict_batch(rgb)
 
     def change_batch(s: Any, i: int) -> object:
-        # float32 convolutions, as ChangeAwareDepthSource runs the network on CUDA
-        tf32, torch.backends.cudnn.allow_tf32 = torch.backends.cudnn.allow_tf32, False
-        out = s.module(data.rgb.to(s.device), data.prior_mm.to(s.device))
-        torch.backends.cudnn.allow_tf32 = tf32
-        return out
+        with fp32_convolutions(s.device):  # as ChangeAwareDepthSource runs it
+            return s.module(data.rgb.to(s.device), data.prior_mm.to(s.device))
 
     for name, load, ckpt, one, batch in (
         ("mono", load_depth_source, DEFAULT_CHECKPOINT, mono_one, mono_batch),

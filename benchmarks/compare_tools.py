@@ -85,6 +85,10 @@ def _means(metrics: dict) -> dict[tuple[int, str], float]:
     }
 
 
+def _run_means(run: Path, sub: str) -> dict[tuple[int, str], float]:
+    return _means(json.loads((run / sub / "base" / "metrics.json").read_text()))
+
+
 def _mean_over_runs(runs: list[dict[tuple[int, str], float]]) -> dict[tuple[int, str], float]:
     """Each (step, method) error averaged over the runs that all hold it."""
     return {k: float(np.mean([r[k] for r in runs])) for k in runs[0] if all(k in r for r in runs)}
@@ -119,15 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, help="also write everything printed as JSON")
     a = p.parse_args(argv)
     sub = f"seed_{a.seed}"
-    free_runs = [
-        _means(json.loads((r / sub / "base" / "metrics.json").read_text())) for r in a.free
-    ]
-    mf, mt = (
-        _mean_over_runs(free_runs),
-        _mean_over_runs(
-            [_means(json.loads((r / sub / "base" / "metrics.json").read_text())) for r in a.tools]
-        ),
-    )
+    free_runs = [_run_means(r, sub) for r in a.free]
+    mf, mt = _mean_over_runs(free_runs), _mean_over_runs([_run_means(r, sub) for r in a.tools])
     free_dir, tools_dir = a.free[0], a.tools[0]
     steps = sorted({s for s, _ in mt})
     methods = [

@@ -26,13 +26,14 @@ from chisel.io.sequence import Frame
 
 
 @contextmanager
-def _fp32_convolutions(device: torch.device) -> Iterator[None]:
+def fp32_convolutions(device: torch.device) -> Iterator[None]:
     """Full float32 convolutions on CUDA while the network runs.
 
     torch lets cuDNN round convolutions to TF32 by default. The network's change decision
     is a threshold (p >= 0.5), and on an H200 TF32 flipped it at 52 of 655 360 pixels of
     8 frames, up to 9 mm apart; in float32 the GPU gave the CPU's depths to 1e-4 mm with
-    no flip (docs/depth.md, "On a GPU"). A network this small loses nothing by it."""
+    no flip (docs/depth.md, "On a GPU"). A network this small loses nothing by it.
+    Anything that runs the exported module on CUDA itself (a batch) wraps it in this."""
     if device.type != "cuda":
         yield
         return
@@ -91,7 +92,7 @@ class ChangeAwareDepthSource:
                 f"{prior.shape[0] if prior.ndim else '?'} but the frame is "
                 f"{rgb.shape[1]}x{rgb.shape[0]}: render the model at the frame's own size",
             )
-        with torch.inference_mode(), _fp32_convolutions(self.device):
+        with torch.inference_mode(), fp32_convolutions(self.device):
             depth, p = self.module(
                 torch.from_numpy(np.ascontiguousarray(rgb))[None].to(self.device),
                 torch.from_numpy(np.ascontiguousarray(prior))[None].to(self.device),
