@@ -40,6 +40,7 @@ from chisel.depth import (
     split_by_group,
     train,
 )
+from chisel.depth.change_aware import DEFAULT_CHANGE_CHECKPOINT
 from chisel.depth.data import augment, downsample_targets
 from chisel.depth.train import resolve_device
 from chisel.io.sequence import Frame, Sequence, SequenceWriter
@@ -517,6 +518,38 @@ def test_cli_predict_writes_valid_sequence(
         ]
     )
     assert rc == 1 and (out / "sequence.json").read_text() == before
+
+
+def test_cli_train_from_a_monocular_checkpoint(
+    dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--init starts training from a checkpoint's weights and keeps its architecture."""
+    parent = tmp_path / "parent.pt"
+    torch.manual_seed(3)
+    save_checkpoint(parent, DepthNet(DepthNetConfig(widths=(8, 12, 16), blocks=(1, 1, 1))), {})
+    out = tmp_path / "child.pt"
+    argv = ["depth", "train", "--data", str(dataset), "--out", str(out), "--epochs", "1"]
+    opts = ["--batch-size", "4", "--threads", "1", "--val-fraction", "0", "--lr", "1e-12"]
+    assert cli.main([*argv, *opts, "--init", str(parent)]) == 0
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["config"]["widths"] == [8, 12, 16]  # the parent's, not the default's
+    assert (
+        sidecar["info"]["init"] == str(parent) and f"--init {parent}" in sidecar["info"]["command"]
+    )
+    # At a vanishing learning rate the weights are the parent's; a fresh network's are not.
+    child, _ = load_checkpoint(out)
+    (p_net, _), fresh = load_checkpoint(parent), DepthNet(DepthNetConfig((8, 12, 16), (1, 1, 1)))
+    w_child, w_parent = child.state_dict(), p_net.state_dict()
+    convs = [k for k in w_parent if k.endswith("weight") and w_parent[k].dim() == 4]
+    assert convs and all(torch.allclose(w_child[k], w_parent[k], atol=1e-6) for k in convs)
+    assert not all(torch.allclose(fresh.state_dict()[k], w_parent[k]) for k in convs)
+    # --init keeps its own network; a change-aware checkpoint is not a monocular parent.
+    capsys.readouterr()
+    assert cli.main([*argv, *opts, "--init", str(parent), "--widths", "8,16"]) == 1
+    assert "--widths" in capsys.readouterr().err
+    assert cli.main([*argv, *opts, "--init", str(DEFAULT_CHANGE_CHECKPOINT)]) == 1
+    err = capsys.readouterr().err
+    assert "change-aware" in err and "monocular" in err
 
 
 def test_cli_train_finetune_export_evaluate(

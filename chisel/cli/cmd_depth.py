@@ -60,8 +60,8 @@ _KINDS = ("monocular", "change-aware")
 
 
 def _change_aware(args: argparse.Namespace) -> bool:
-    """True for --kind change-aware; --steps/--mesh/--model/--eval-every are refused for the monocular
-    kind."""
+    """True for --kind change-aware; --steps/--mesh/--model/--eval-every/--prior-surface are
+    refused for the monocular kind."""
     if args.kind == "change-aware":
         for flag in ("size", "blocks"):
             if getattr(args, flag, None) is not None:
@@ -73,7 +73,7 @@ def _change_aware(args: argparse.Namespace) -> bool:
         if getattr(args, "prior_surface", "") is None:
             args.prior_surface = "mesh"
         return True
-    for flag in ("steps", "mesh", "model", "eval_every", "prior_surface", "init"):
+    for flag in ("steps", "mesh", "model", "eval_every", "prior_surface"):
         if getattr(args, flag, None) is not None:
             raise InvalidInputError(
                 "--" + flag.replace("_", "-"), "is an option of --kind change-aware only"
@@ -122,6 +122,7 @@ _TRAIN_OPTS = [
     "size",
     "widths",
     "blocks",
+    "init",
     "max_minutes",
     "threads",
     "device",
@@ -151,6 +152,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     val_frames = (
         load_frames(val_refs, size=args.size, frame_step=args.frame_step) if val_refs else None
     )
+    init = None
+    if args.init is not None:
+        for flag in ("widths", "blocks"):
+            if getattr(args, flag) is not None:
+                raise InvalidInputError(f"--{flag}", "the network of --init keeps its own")
+        init, _ = load_checkpoint(Path(args.init))
     net_config = DepthNetConfig(
         widths=args.widths or DepthNetConfig().widths,
         blocks=args.blocks or DepthNetConfig().blocks,
@@ -161,10 +168,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
         max_minutes=args.max_minutes,
         **trainer_options(args),
     )
-    result = train(frames, cfg, net_config, val_frames=val_frames, progress=True)
+    result = train(frames, cfg, net_config, init=init, val_frames=val_frames, progress=True)
     info = {
         "kind": "train",
         "command": canonical_command(args, _TRAIN_OPTS),
+        "init": None if args.init is None else str(args.init),
         "train_phantom_seeds": _seeds(train_refs),
         "val_phantom_seeds": _seeds(val_refs),
         "train_sequences": [str(r.path) for r in train_refs],
@@ -388,7 +396,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     t.add_argument(
         "--init",
         default=None,
-        help="change-aware only: start from this checkpoint's weights (default: from scratch)",
+        help="start from this checkpoint's weights, of the kind being trained (default: from "
+        "scratch); its architecture is kept",
     )
     t.add_argument(
         "--blocks", type=_ints, default=None, help="residual blocks per stage, e.g. 1,1,1,2,2"
