@@ -649,6 +649,10 @@ def test_shipped_checkpoints_load_and_predict(dataset: Path, shipped: Path) -> N
     assert min(info["train_phantom_seeds"]) >= 1000
     if shipped == EFFECTS_CHECKPOINT:  # its record names the data that reproduces it
         assert "config/sim_train_effects.yaml" in info["command"]
+    if shipped == DEFAULT_CHECKPOINT:  # trained on from a parent that ships beside it
+        parent = shipped.with_name(Path(info["init"]).name)
+        assert parent != shipped and "--procedure uncinectomy" in info["command"]
+        assert load_checkpoint(parent)[0].config == net.config
     src = load_depth_source(shipped)
     frame = Sequence(dataset / "seq_1000").frame(0)
     depth = src(frame)
