@@ -1,7 +1,7 @@
 """Depth network benchmark: accuracy on held-out phantoms and CPU inference speed.
 
     python benchmarks/bench_depth.py [--checkpoint CK] [--data DATASET_OR_SEQS ...]
-                                     [--seeds 0-3] [--frames 30] [--threads 2]
+                                     [--seeds 0-3] [--frames 30] [--bites 1] [--threads 2]
                                      [--effects-config config/sim_eval_effects.yaml]
                                      [--baseline CK]
 
@@ -55,9 +55,19 @@ class ConstantDepth:
         return np.ones(frame.rgb.shape[:2], np.float32)
 
 
-def render_eval_set(seeds: str, frames: int, out: Path, config: Path | None = None) -> Path:
+def render_eval_set(
+    seeds: str, frames: int, out: Path, config: Path | None = None, bites: int = 1
+) -> Path:
     cmd = [sys.executable, "-m", "sim", "dataset", "--seeds", seeds, "--out", str(out)]
-    cmd += ["--bites", "1", "--frames", str(frames), "--preop-frames", str(frames), "--quiet"]
+    cmd += [
+        "--bites",
+        str(bites),
+        "--frames",
+        str(frames),
+        "--preop-frames",
+        str(frames),
+        "--quiet",
+    ]
     if config is not None:
         cmd += ["--config", str(config), "--tools"]
     subprocess.run(cmd, check=True)
@@ -85,6 +95,13 @@ def main() -> None:
     ap.add_argument("--seeds", default="0-3", help="evaluation phantom seeds to render (0-99)")
     ap.add_argument("--frames", type=int, default=20, help="frames per rendered sequence")
     ap.add_argument(
+        "--bites",
+        type=int,
+        default=1,
+        help="steps of the uncinectomy to render (default 1; 5: every step the workflow's "
+        "table updates, the close-up views into the opening)",
+    )
+    ap.add_argument(
         "--threads",
         type=int,
         default=1,
@@ -111,7 +128,7 @@ def main() -> None:
         data = args.data
         if not data:
             t0 = time.perf_counter()
-            data = [render_eval_set(args.seeds, args.frames, Path(tmp) / "eval")]
+            data = [render_eval_set(args.seeds, args.frames, Path(tmp) / "eval", bites=args.bites)]
             print(f"render_seconds: {time.perf_counter() - t0:.1f}")
         refs = find_sequences(data)
         seeds = sorted({r.seed for r in refs if r.seed is not None})
@@ -129,7 +146,9 @@ def main() -> None:
         print(f"abs_rel: {m.abs_rel:.4f}")
         fx: list[Sequence] = []
         if args.effects_config is not None:
-            fx_dir = render_eval_set(args.seeds, args.frames, Path(tmp) / "fx", args.effects_config)
+            fx_dir = render_eval_set(
+                args.seeds, args.frames, Path(tmp) / "fx", args.effects_config, args.bites
+            )
             fx = [Sequence(r.path) for r in find_sequences([fx_dir])]
             print(f"effects_config: {args.effects_config}")
             print(f"eval_frames_effects: {sum(len(s) for s in fx)}")
