@@ -137,6 +137,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
         return cmd_change_aware.train(args)
     out = Path(args.out)
+    init = None
+    if args.init is not None:  # before the frames load: a wrong parent fails at once
+        for flag in ("widths", "blocks"):
+            if getattr(args, flag) is not None:
+                raise InvalidInputError(f"--{flag}", "the network of --init keeps its own")
+        init, _ = load_checkpoint(Path(args.init))
     refs = find_sequences(args.data, args.allow_outside_manifest)
     check_training_seeds(refs)
     train_refs, val_refs = split_by_group(refs, args.val_fraction, args.seed)
@@ -152,12 +158,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
     val_frames = (
         load_frames(val_refs, size=args.size, frame_step=args.frame_step) if val_refs else None
     )
-    init = None
-    if args.init is not None:
-        for flag in ("widths", "blocks"):
-            if getattr(args, flag) is not None:
-                raise InvalidInputError(f"--{flag}", "the network of --init keeps its own")
-        init, _ = load_checkpoint(Path(args.init))
     net_config = DepthNetConfig(
         widths=args.widths or DepthNetConfig().widths,
         blocks=args.blocks or DepthNetConfig().blocks,
