@@ -27,14 +27,12 @@ from pathlib import Path
 
 from sim.dataset import parse_seeds
 
-NONE = "no_update"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_fidelity import NONE, _cells, _num  # noqa: E402
+
 Cell = dict[str, float]
-"""ratio, mean_mm, and the optional scores (NaN where a run holds none)."""
+"""ratio and the optional scores (NaN where a run holds none)."""
 SCORES = ("removed_dice", "mask_precision", "mask_recall", "missing_fraction")
-
-
-def _num(x: object) -> float:
-    return float("nan") if x is None else float(x)  # type: ignore[arg-type]
 
 
 def read_run(results: Path, seeds: list[int] | None) -> dict[tuple[int, int, str], Cell]:
@@ -52,19 +50,16 @@ def read_run(results: Path, seeds: list[int] | None) -> dict[tuple[int, int, str
         raise SystemExit(f"{results}: no seed_N/base/metrics.json (not a `table` results folder)")
     cells: dict[tuple[int, int, str], Cell] = {}
     for seed, path in sorted(found.items()):
-        for step in json.loads(path.read_text())["steps"]:
-            if int(step["step"]) < 1:
-                continue
-            methods = step["methods"]
+        for step, methods in _cells(json.loads(path.read_text())).items():
             if NONE not in methods:
-                raise SystemExit(f"{path}: step {step['step']} has no {NONE} row to divide by")
+                raise SystemExit(f"{path}: step {step} has no {NONE} row to divide by")
             base_mm = float(methods[NONE]["mean_mm"])
             for name, c in methods.items():
                 if name == NONE or c.get("mean_mm") is None:
                     continue
-                cell = {"ratio": float(c["mean_mm"]) / base_mm, "mean_mm": float(c["mean_mm"])}
+                cell = {"ratio": float(c["mean_mm"]) / base_mm}
                 cell.update({k: _num(c.get(k)) for k in SCORES})
-                cells[(seed, int(step["step"]), name)] = cell
+                cells[(seed, step, name)] = cell
     return cells
 
 
