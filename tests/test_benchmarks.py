@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from benchmark_module import load_benchmark
 
 from chisel.depth import DEFAULT_CHECKPOINT
 
@@ -146,14 +147,7 @@ def test_bench_depth_train_refuses_a_single_phantom() -> None:
 
 def test_bench_fidelity_figures_from_a_table() -> None:
     """The goal figures of bench_fidelity.py, from a two-step table written by hand."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "bench_fidelity", ROOT / "benchmarks/bench_fidelity.py"
-    )
-    assert spec is not None and spec.loader is not None
-    fid = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(fid)
+    fid = load_benchmark("bench_fidelity")
 
     def cell(mean: float, **kw: float | None) -> dict:
         return {"mean_mm": mean, "missing_fraction": 0.0, **kw}

@@ -2,23 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location(
-        "compare_runs", ROOT / "benchmarks/compare_runs.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from benchmark_module import load_benchmark
 
 
 def _write(root: Path, seed: int, rows: dict[str, list[tuple[float, float | None]]]) -> None:
@@ -46,7 +35,7 @@ def test_figures_and_cell_by_cell_ratios(tmp_path: Path, capsys) -> None:
     _write(a, 1, {"updated": [(0.6, 0.7), (0.4, 0.6)], "change_aware": [(0.2, 0.9), (0.2, 0.9)]})
     _write(b, 0, {"updated": [(0.2, 0.9), (0.2, 0.8)]})
     _write(b, 1, {"updated": [(1.2, 0.8), (0.1, 0.5)]})
-    mod = _load()
+    mod = load_benchmark("compare_runs")
     assert mod.main([str(a), str(b)]) == 0
     out = dict(line.split(": ", 1) for line in capsys.readouterr().out.splitlines())
     # first run's ratios 0.2, 0.1, 0.3, 0.2; second's 0.1, 0.1, 0.6, 0.05
@@ -71,7 +60,7 @@ def test_a_missing_seed_or_method_is_named(tmp_path: Path) -> None:
     a, b = tmp_path / "a", tmp_path / "b"
     _write(a, 0, {"updated": [(0.4, 0.8), (0.2, 0.9)]})
     _write(b, 0, {"updated": [(0.4, 0.8), (0.2, 0.9)]})
-    mod = _load()
+    mod = load_benchmark("compare_runs")
     with pytest.raises(SystemExit, match=r"seeds \[1\]"):
         mod.main([str(a), str(b), "--seeds", "0-1"])
     with pytest.raises(SystemExit, match="change_aware"):

@@ -2,23 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
+from benchmark_module import load_benchmark
 from PIL import Image
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location(
-        "compare_tools", ROOT / "benchmarks/compare_tools.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _run(root: Path, means: dict[str, list[float]], tools: bool) -> None:
@@ -59,7 +48,7 @@ def test_compare_tools_ratios_verdict_and_tool_statistics(tmp_path: Path, capsys
     )
     _run(tmp_path / "tools", {"no_update": [1.0, 2.0], "updated": [0.5, 1.2]}, True)
     out_json = tmp_path / "out.json"
-    rc = _load().main(
+    rc = load_benchmark("compare_tools").main(
         [
             "--free",
             str(tmp_path / "free"),
@@ -92,7 +81,7 @@ def test_several_runs_compare_their_means_and_print_the_tool_free_spread(
     _run(tmp_path / "t0", {"no_update": [1.0, 2.0], "updated": [0.5, 0.6]}, True)
     _run(tmp_path / "t1", {"no_update": [1.0, 2.0], "updated": [0.5, 0.66]}, True)
     out_json = tmp_path / "out.json"
-    rc = _load().main(
+    rc = load_benchmark("compare_tools").main(
         ["--free", str(tmp_path / "f0"), str(tmp_path / "f1"),
          "--tools", str(tmp_path / "t0"), str(tmp_path / "t1"), "--json", str(out_json)]
     )  # fmt: skip
