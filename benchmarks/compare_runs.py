@@ -8,13 +8,14 @@ Each run is a results folder of the workflow's `table` target (`seed_N/base/metr
 per phantom seed). A cell is one (seed, step >= 1, method); its figure is the paper's
 metric as a fraction of no update's in the same run (`mean_mm / no_update mean_mm`), so
 that two runs on different renders stay comparable. Per method present in both runs, for
-each run: that ratio's mean, worst and worst at steps 2+, removed-tissue Dice mean and
-min, change-mask precision / recall mean and min, the largest `missing_fraction`; then
-second / first cell by cell: range, geometric mean, cells better, cells with a better
-Dice. Prints `name: value` lines; last, `second_over_first_geomean` over every compared
-cell (< 1: the second run is better). A network row moves by itself by up to ~40 % at a
-single cell when only its fine-tuning's seed changes (docs/results.md, twenty-first and
-twenty-second sessions): read single cells against that.
+each run: that ratio's mean, worst and worst at steps 2+, removed-tissue Dice, precision
+and recall (mean and min; NaN for runs older than the last two), change-mask precision /
+recall mean and min, the largest `missing_fraction`; then second / first cell by cell:
+range, geometric mean, cells better, cells with a better Dice. Prints `name: value`
+lines; last, `second_over_first_geomean` over every compared cell (< 1: the second run
+is better). A network row moves by itself by up to ~40 % at a single cell when only its
+fine-tuning's seed changes (docs/results.md, twenty-first and twenty-second sessions):
+read single cells against that.
 """
 
 from __future__ import annotations
@@ -32,7 +33,14 @@ from bench_fidelity import NONE, _cells, _num  # noqa: E402
 
 Cell = dict[str, float]
 """ratio and the optional scores (NaN where a run holds none)."""
-SCORES = ("removed_dice", "mask_precision", "mask_recall", "missing_fraction")
+SCORES = (
+    "removed_dice",
+    "removed_precision",
+    "removed_recall",
+    "mask_precision",
+    "mask_recall",
+    "missing_fraction",
+)
 
 
 def read_run(results: Path, seeds: list[int] | None) -> dict[tuple[int, int, str], Cell]:
@@ -79,6 +87,8 @@ def summarise(cells: dict[tuple[int, int, str], Cell], method: str) -> dict[str,
     }
     for key, name in (
         ("removed_dice", "dice"),
+        ("removed_precision", "removed_precision"),
+        ("removed_recall", "removed_recall"),
         ("mask_precision", "precision"),
         ("mask_recall", "recall"),
     ):

@@ -829,6 +829,15 @@ def test_removal_dice_matches_box_overlap_and_hd95_a_kdtree() -> None:
     assert hd95_mm(a, a, 0.5) == 0.0 and hd95_mm(a, np.zeros(shape, bool), 0.5) is None
     s = removal_scores(a, b, 0.5)
     assert s.model_mm3 == pytest.approx(8000 * 0.125) and s.truth_mm3 == s.model_mm3
+    assert s.precision == pytest.approx(16 / 20) and s.recall == pytest.approx(16 / 20)
+    # Which way a method errs: carving a third of the removal and nothing else, or all of
+    # it and as much again elsewhere, both score Dice 0.5; precision and recall tell.
+    third = _box_mask(shape, (5, 5, 5), (25, 25, 10))  # 20 x 20 x 5 of the 20^3 truth
+    less = removal_scores(third, a, 0.5)
+    assert less.dice == pytest.approx(2 * 2000 / 10000)
+    assert less.precision == 1.0 and less.recall == pytest.approx(2000 / 8000)
+    more = removal_scores(a | _box_mask(shape, (5, 5, 25), (25, 25, 40)), a, 0.5)  # + 20x20x15
+    assert more.precision == pytest.approx(8000 / 14000) and more.recall == 1.0
 
 
 def test_model_and_true_removal_on_the_model_grid() -> None:
@@ -857,6 +866,8 @@ def test_model_and_true_removal_on_the_model_grid() -> None:
     # No update: nothing removed, Dice 0, HD95 undefined.
     s0 = removal_scores(model_removal(m0, m0), truth, 0.5)
     assert s0.dice == 0.0 and s0.hd95_mm is None
+    assert s0.precision is None and s0.recall == 0.0  # nothing carved: no precision to speak of
+    assert (s.precision, s.recall) == (1.0, 1.0)
 
 
 def test_removal_scores_each_method_against_its_own_preop_grid(tmp_path, monkeypatch) -> None:

@@ -408,7 +408,7 @@ def surface_table_html(metrics: Mapping[str, Any]) -> str:
             c = s["methods"].get(m)
             if c is None:
                 continue
-            cells = "".join(f"<td>{_num(c[k])}</td>" for k in keys)
+            cells = "".join(f"<td>{_num(c.get(k))}</td>" for k in keys)
             rows.append(
                 f"<tr><td class='l'>{html.escape(s['label'])}</td>"
                 f"<td class='l'>{html.escape(m)}</td>{cells}</tr>"

@@ -90,6 +90,8 @@ def method_cell(
         "mask_recall": None if masks is None else _finite_or_none(masks.recall),
         "removed_dice": None if removal is None else removal.dice,
         "removed_hd95_mm": None if removal is None else removal.hd95_mm,
+        "removed_precision": None if removal is None else removal.precision,
+        "removed_recall": None if removal is None else removal.recall,
     }
 
 

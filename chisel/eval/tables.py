@@ -47,10 +47,18 @@ METRIC_KEYS: tuple[str, ...] = (
     "mask_recall",
     "removed_dice",
     "removed_hd95_mm",
+    "removed_precision",
+    "removed_recall",
 )
 """Every key of a method's cell in ``metrics.json``; a value is a number or null."""
-OPTIONAL_KEYS: tuple[str, ...] = ("removed_dice", "removed_hd95_mm")
-"""Keys a cell may lack (tables written before the volumetric scores existed): read as null."""
+OPTIONAL_KEYS: tuple[str, ...] = (
+    "removed_dice",
+    "removed_hd95_mm",
+    "removed_precision",
+    "removed_recall",
+)
+"""Keys a cell may lack (tables written before the volumetric scores, or before their
+precision and recall, existed): read as null."""
 
 _NUM_OR_NULL = {"type": ["number", "null"]}
 _METHOD_CELL_SCHEMA = {
@@ -284,6 +292,8 @@ def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
         "mask_recall",
         "removed_dice",
         "removed_hd95_mm",
+        "removed_precision",
+        "removed_recall",
     )
     lines += [
         "",
