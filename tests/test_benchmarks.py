@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from benchmark_module import load_benchmark
 
@@ -143,6 +144,43 @@ def test_bench_depth_train_prints_train_min_last() -> None:
 def test_bench_depth_train_refuses_a_single_phantom() -> None:
     r = run_script("bench_depth_train.py", "--phantoms", "1")
     assert r.returncode == 2 and "validation holds out whole phantoms" in r.stderr
+
+
+def test_bench_carve_oracle_sources_put_true_depth_where_the_network_decides() -> None:
+    from chisel.depth_source import GroundTruthDepth, is_estimate, is_metric, wants_prior
+    from chisel.io.sequence import Frame
+    from chisel.update_config import UpdateConfig
+    from chisel.updater import is_precise
+
+    oracle = load_benchmark("bench_carve_oracle")
+    true = np.full((4, 5), 20.0, np.float32)
+    true[1:3, 1:3] = 30.0  # a window 10 mm deep
+    prior = np.full((4, 5), 20.5, np.float32)
+    decided = np.zeros((4, 5), bool)
+    decided[1:3, 1:4] = True  # the network says "changed" on the window and one column more
+    mask = np.ones((4, 5), bool)
+    mask[0, 0] = False
+
+    class Network:
+        last_change_probability: np.ndarray | None = None
+
+        def __call__(self, frame: Frame, prior_mm: np.ndarray) -> np.ndarray:
+            self.last_change_probability = np.where(decided, 0.9, 0.1).astype(np.float32)
+            return prior_mm + 1.0
+
+    frame = Frame(0, np.eye(4), np.zeros((4, 5, 3), np.uint8), true, mask)
+    source = oracle.DecisionTrueDepth(Network())
+    expected = np.where(decided, true, prior)
+    expected[0, 0] = np.nan
+    np.testing.assert_array_equal(source(frame, prior_mm=prior), expected)
+    noisy = oracle.TrueDepthAsEstimate()
+    np.testing.assert_array_equal(noisy(frame), true)
+    assert wants_prior(source) and is_metric(source) and is_metric(noisy)
+    # Both are carved as a network is; the frame's true depth alone is carved as precise.
+    cfg = UpdateConfig()
+    assert not is_precise(1.0, cfg, is_estimate(source))
+    assert not is_precise(1.0, cfg, is_estimate(noisy))
+    assert is_precise(1.0, cfg, is_estimate(GroundTruthDepth()))
 
 
 def test_bench_fidelity_figures_from_a_table() -> None:
