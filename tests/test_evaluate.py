@@ -831,7 +831,7 @@ def test_removal_dice_matches_box_overlap_and_hd95_a_kdtree() -> None:
     assert s.model_mm3 == pytest.approx(8000 * 0.125) and s.truth_mm3 == s.model_mm3
     assert s.precision == pytest.approx(16 / 20) and s.recall == pytest.approx(16 / 20)
     # Which way a method errs: carving a third of the removal and nothing else, or all of
-    # it and as much again elsewhere, both score Dice 0.5; precision and recall tell.
+    # it and twice as much again elsewhere, both score Dice 0.5; precision and recall tell.
     third = _box_mask(shape, (5, 5, 5), (25, 25, 10))  # 20 x 20 x 5 of the 20^3 truth
     less = removal_scores(third, a, 0.5)
     assert less.dice == pytest.approx(2 * 2000 / 10000)

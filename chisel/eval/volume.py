@@ -11,10 +11,10 @@ Per step and method, on the model's voxel grid:
 Dice = 2 |A ∩ B| / (|A| + |B|). Its two halves say which way a method errs: precision
 |A ∩ B| / |A| (what it removed was removed) and recall |A ∩ B| / |B| (what was removed,
 it removed); a Dice of 0.5 is an update that carved a third of the removal and nothing
-else, or one that carved all of it and as much again elsewhere. HD95 is the symmetric 95th percentile of the distances
-between the two volumes' boundary voxels (scipy's Euclidean distance transform, voxel
-size honoured), mm. Video-based CT-update work reports these on cadavers (Dice 0.88, HD95
-0.69 mm).
+else, or one that carved all of it and twice as much again elsewhere. HD95 is the
+symmetric 95th percentile of the distances between the two volumes' boundary voxels
+(scipy's Euclidean distance transform, voxel size honoured), mm. Video-based CT-update
+work reports these on cadavers (Dice 0.88, HD95 0.69 mm).
 """
 
 from __future__ import annotations
