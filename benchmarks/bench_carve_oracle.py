@@ -93,25 +93,15 @@ class TrueDepthAsEstimate(GroundTruthDepth):
     is_estimate = True
 
 
-def step_scores(
-    seed_dir: Path, k: int, cfg: UpdateConfig, sources: tuple[str, ...] = SOURCES
-) -> dict[str, float]:
-    """Removed-tissue scores of step ``k`` of one seed, run again with each source."""
+def seed_scores(
+    seed_dir: Path, steps: list[int], cfg: UpdateConfig, sources: tuple[str, ...] = SOURCES
+) -> dict[int, dict[str, float]]:
+    """Removed-tissue scores of each of ``steps`` of one seed, run again with each source.
+
+    The preoperative model, the preoperative label CT and the network are read once."""
     pre = TsdfModel.load(seed_dir / "preop" / "model.npz")
-    start_path = (
-        seed_dir / "preop" / "model.npz"
-        if k == 1
-        else seed_dir / "base" / METHOD / f"step_{k - 1:02d}" / "model.npz"
-    )
-    if not start_path.is_file():
-        raise SystemExit(f"{start_path}: missing (a `table` run with the {METHOD} row is needed)")
-    start = TsdfModel.load(start_path)
     ct = seed_dir / "phantom" / "ct"
     c0 = read_ct_volume(ct / "step_00_label.nii.gz", "label")
-    ck = read_ct_volume(ct / f"step_{k:02d}_label.nii.gz", "label")
-    truth = true_removal(c0.data, ck.data, c0.T_world_from_voxel, pre)
-    seq = Sequence(seed_dir / "render" / f"step_{k:02d}")
-    frames = [seq.frame(i) for i in range(len(seq))]
     net = load_change_aware_source(seed_dir / "depth" / "change_aware_finetuned.pt")
     make: dict[str, Callable[[], Callable[..., np.ndarray]]] = {
         "network": lambda: net,
@@ -119,14 +109,31 @@ def step_scores(
         "true_depth_noisy": TrueDepthAsEstimate,
         "true_depth": GroundTruthDepth,
     }
-    out: dict[str, float] = {}
-    for name in sources:
-        model, _ = update_step(start, seq.camera, frames, make[name](), cfg)
-        s = removal_scores(model_removal(pre, model), truth, pre.voxel_size_mm)
-        out[f"{name}_dice"] = s.dice if s.dice is not None else 0.0
-        out[f"{name}_precision"] = s.precision if s.precision is not None else float("nan")
-        out[f"{name}_recall"] = s.recall if s.recall is not None else 0.0
-    return out
+    scores: dict[int, dict[str, float]] = {}
+    for k in steps:
+        start_path = (
+            seed_dir / "preop" / "model.npz"
+            if k == 1
+            else seed_dir / "base" / METHOD / f"step_{k - 1:02d}" / "model.npz"
+        )
+        if not start_path.is_file():
+            raise SystemExit(
+                f"{start_path}: missing (a `table` run with the {METHOD} row is needed)"
+            )
+        start = pre if k == 1 else TsdfModel.load(start_path)
+        ck = read_ct_volume(ct / f"step_{k:02d}_label.nii.gz", "label")
+        truth = true_removal(c0.data, ck.data, c0.T_world_from_voxel, pre)
+        seq = Sequence(seed_dir / "render" / f"step_{k:02d}")
+        frames = [seq.frame(i) for i in range(len(seq))]
+        out: dict[str, float] = {}
+        for name in sources:
+            model, _ = update_step(start, seq.camera, frames, make[name](), cfg)
+            s = removal_scores(model_removal(pre, model), truth, pre.voxel_size_mm)
+            out[f"{name}_dice"] = s.dice if s.dice is not None else 0.0
+            out[f"{name}_precision"] = s.precision if s.precision is not None else float("nan")
+            out[f"{name}_recall"] = s.recall if s.recall is not None else 0.0
+        scores[k] = out
+    return scores
 
 
 def main() -> int:
@@ -151,8 +158,8 @@ def main() -> int:
     t0 = time.perf_counter()
     dices: dict[str, list[float]] = {name: [] for name in sources}
     for seed in parse_seeds(args.seeds):
-        for k in parse_seeds(args.steps):
-            figs = step_scores(args.run / f"seed_{seed}", k, cfg, sources)
+        per_step = seed_scores(args.run / f"seed_{seed}", parse_seeds(args.steps), cfg, sources)
+        for k, figs in per_step.items():
             for name, value in figs.items():
                 print(f"seed_{seed}_step_{k}_{name}: {value:.3f}")
             for name in sources:
