@@ -13,15 +13,20 @@ the run's update config, once per depth source:
   network is (``UpdateConfig.noisy_*``: votes, one layer, the cavity-middle rule, no cut
   inside held tissue): a perfect estimate under the noisy carving's guards;
 - ``true_depth``: the frame's true depth carved as precise (the exact-depth row's carving
-  from the same start model).
+  from the same start model);
+- ``network_oracle_reliable`` (not run unless named in ``--sources``): the network's own
+  depth, carved as precise exactly where it lies within ``--oracle-tol-mm`` (0.5) of the
+  truth and as a noisy estimate elsewhere: what a perfect per-pixel reliability head
+  would give (``last_reliable_px``, :mod:`chisel.depth_source`).
 
 Each row's removed-tissue Dice, precision and recall against the truth (tissue in the
 preoperative label CT, air in the step's; :mod:`chisel.eval.volume`) is printed per seed
 and step as ``seed_S_step_K_SOURCE_dice: ...``. ``network`` to ``decision_true_depth`` is
 what the network's depth costs, ``decision_true_depth`` to ``true_depth_noisy`` what its
 decision costs, ``true_depth_noisy`` to ``true_depth`` what the noisy carving's guards
-cost. Prints each source's mean Dice, ``cpu_simd``, ``elapsed_s`` and, last,
-``noisy_carving_dice_cost``: the mean Dice of ``true_depth`` minus that of
+cost. ``--true-poses`` gives every frame its true pose (no tracking error): what the
+tracker's error costs. Prints each source's mean Dice, ``cpu_simd``, ``elapsed_s`` and,
+last, ``noisy_carving_dice_cost``: the mean Dice of ``true_depth`` minus that of
 ``true_depth_noisy`` (when both run: ``--sources``). ``--config`` runs a variant of the
 update config instead of the run's. About 10-25 s per source and step on this 2-core
 machine.
@@ -57,7 +62,14 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from host import cpu_simd  # noqa: E402
 
 METHOD = "change_aware"
-SOURCES = ("network", "decision_true_depth", "true_depth_noisy", "true_depth")
+SOURCES = (
+    "network",
+    "decision_true_depth",
+    "true_depth_noisy",
+    "true_depth",
+    "network_oracle_reliable",
+)
+DEFAULT_SOURCES = SOURCES[:4]
 
 
 class DecisionTrueDepth:
@@ -87,14 +99,49 @@ class DecisionTrueDepth:
         return out
 
 
+class OracleReliable:
+    """The network's own depth, declared reliable (carved as precise) exactly where it lies
+    within ``tol_mm`` of the frame's true depth: what a perfect reliability head would give."""
+
+    is_metric = True
+    wants_prior = True
+    needs_rgb = True
+    is_estimate = True
+
+    def __init__(self, network: Callable[..., np.ndarray], tol_mm: float) -> None:
+        self.network = network
+        self.tol_mm = tol_mm
+        self.last_reliable_px: np.ndarray | None = None
+
+    def __call__(self, frame: Frame, prior_mm: np.ndarray) -> np.ndarray:
+        if frame.depth_mm is None:
+            raise SystemExit(f"frame {frame.index}: no true depth (a rendered sequence is needed)")
+        out = self.network(frame, prior_mm=prior_mm)
+        with np.errstate(invalid="ignore"):
+            self.last_reliable_px = np.abs(out - frame.depth_mm) <= self.tol_mm
+        return out
+
+
 class TrueDepthAsEstimate(GroundTruthDepth):
     """The frame's true depth, carved as a learnt estimate (``is_estimate``)."""
 
     is_estimate = True
 
 
+def with_true_pose(frame: Frame) -> Frame:
+    """The frame as a tracker without error would report it."""
+    if frame.T_world_from_cam_true is None:
+        raise SystemExit(f"frame {frame.index}: no true pose (a rendered sequence is needed)")
+    return dataclasses.replace(frame, T_world_from_cam=frame.T_world_from_cam_true)
+
+
 def seed_scores(
-    seed_dir: Path, steps: list[int], cfg: UpdateConfig, sources: tuple[str, ...] = SOURCES
+    seed_dir: Path,
+    steps: list[int],
+    cfg: UpdateConfig,
+    sources: tuple[str, ...] = DEFAULT_SOURCES,
+    oracle_tol_mm: float = 0.5,
+    true_poses: bool = False,
 ) -> dict[int, dict[str, float]]:
     """Removed-tissue scores of each of ``steps`` of one seed, run again with each source.
 
@@ -108,6 +155,7 @@ def seed_scores(
         "decision_true_depth": lambda: DecisionTrueDepth(net),
         "true_depth_noisy": TrueDepthAsEstimate,
         "true_depth": GroundTruthDepth,
+        "network_oracle_reliable": lambda: OracleReliable(net, oracle_tol_mm),
     }
     scores: dict[int, dict[str, float]] = {}
     for k in steps:
@@ -125,6 +173,8 @@ def seed_scores(
         truth = true_removal(c0.data, ck.data, c0.T_world_from_voxel, pre)
         seq = Sequence(seed_dir / "render" / f"step_{k:02d}")
         frames = [seq.frame(i) for i in range(len(seq))]
+        if true_poses:
+            frames = [with_true_pose(f) for f in frames]
         out: dict[str, float] = {}
         for name in sources:
             model, _ = update_step(start, seq.camera, frames, make[name](), cfg)
@@ -144,10 +194,25 @@ def main() -> int:
     parser.add_argument("--seeds", required=True, help="phantom seeds, e.g. '0-4'")
     parser.add_argument("--steps", default="1", help="steps, e.g. '1' (default) or '1-5'")
     parser.add_argument(
-        "--sources", nargs="+", choices=SOURCES, default=list(SOURCES), help="default: all four"
+        "--sources",
+        nargs="+",
+        choices=SOURCES,
+        default=list(DEFAULT_SOURCES),
+        help="default: the first four",
+    )
+    parser.add_argument(
+        "--oracle-tol-mm",
+        type=float,
+        default=0.5,
+        help="network_oracle_reliable: carve as precise where the network is this near the truth",
     )
     parser.add_argument(
         "--config", type=Path, help="update config to use instead of the run's (a variant)"
+    )
+    parser.add_argument(
+        "--true-poses",
+        action="store_true",
+        help="give every frame its true pose (no tracking error): what tracking error costs",
     )
     args = parser.parse_args()
     sources = tuple(args.sources)
@@ -158,7 +223,14 @@ def main() -> int:
     t0 = time.perf_counter()
     dices: dict[str, list[float]] = {name: [] for name in sources}
     for seed in parse_seeds(args.seeds):
-        per_step = seed_scores(args.run / f"seed_{seed}", parse_seeds(args.steps), cfg, sources)
+        per_step = seed_scores(
+            args.run / f"seed_{seed}",
+            parse_seeds(args.steps),
+            cfg,
+            sources,
+            args.oracle_tol_mm,
+            args.true_poses,
+        )
         for k, figs in per_step.items():
             for name, value in figs.items():
                 print(f"seed_{seed}_step_{k}_{name}: {value:.3f}")

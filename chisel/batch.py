@@ -19,7 +19,13 @@ import numpy as np
 from chisel.change import solve_scale
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
-from chisel.depth_source import estimate_depth, is_estimate, is_metric, wants_prior
+from chisel.depth_source import (
+    estimate_depth,
+    is_estimate,
+    is_metric,
+    reliable_pixels,
+    wants_prior,
+)
 from chisel.detect import (
     Context,
     FrameInput,
@@ -94,10 +100,11 @@ def plan_step(
         # M_t at every tracked pose: registration's reference, and the prior handed to a
         # depth source that wants one (the change-aware network).
         renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
-    estimates = [
-        validate_estimate(estimate_depth(depth_source, f, R), f, camera, metric)
-        for f, R in zip(frames, renders, strict=True)
-    ]
+    estimates, reliable = [], []
+    for f, R in zip(frames, renders, strict=True):
+        E = estimate_depth(depth_source, f, R)
+        reliable.append(reliable_pixels(depth_source, f, np.shape(E)))
+        estimates.append(validate_estimate(E, f, camera, metric))
     scales: list[float | None] = [None] * len(frames)
     F, seq_reg, step_cfg = None, None, cfg
     if cfg.register:
@@ -107,8 +114,10 @@ def plan_step(
             solve_for_scale,
         )  # fmt: skip
     inputs = [
-        FrameInput(f, T, E, R, s)
-        for f, T, E, R, s in zip(frames, poses, estimates, renders, scales, strict=True)
+        FrameInput(f, T, E, R, s, P)
+        for f, T, E, R, s, P in zip(
+            frames, poses, estimates, renders, scales, reliable, strict=True
+        )
     ]
     return StepPlan(inputs, renderer, F, seq_reg, step_cfg, solve_for_scale)
 
@@ -197,8 +206,8 @@ def update_step(
     votes = np.zeros(new.shape, dtype=np.uint8)
     estimate = is_estimate(depth_source)
     reports = [
-        fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps, votes=votes, estimate=estimate)
-        for f, d in zip(frames, dets, strict=True)
+        fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps, votes, estimate, inp.reliable)
+        for f, d, inp in zip(frames, dets, plan.inputs, strict=True)
     ]
     return finish_step(new, reports, plan.sequence_registration, step_cfg)
 

@@ -52,7 +52,7 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
                 max_layers, precise, max_layer_mm, max_depth_mm, z0, z1, reach):  # fmt: skip
     # Read-only pass: per changed pixel, its status and the depth intervals [z0, z1) of the
     # layers to delete (up to ``max_layers``). No voxel is written here, so the result does
-    # not depend on the order the pixels are visited in.
+    # not depend on the order the pixels are visited in. ``precise`` is per pixel.
     # Not ``precise`` (a noisy estimate): one layer at most, deleted only when the estimate
     # lies past the middle of the cavity behind it, no thicker along the ray than
     # ``max_layer_mm``, nothing where the old surface lies deeper than ``max_depth_mm``,
@@ -72,7 +72,8 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
             ze = np.float64(m_new[v, u])
             if not (zt > 0.0 and ze > 0.0 and np.isfinite(zt) and np.isfinite(ze)):
                 continue
-            if not precise and zt > max_depth_mm:
+            pr = precise[v, u]
+            if not pr and zt > max_depth_mm:
                 continue  # too far for a noisy estimate's verdict: left alone
             rx = rays[v, u, 0]
             ry = rays[v, u, 1]
@@ -125,13 +126,13 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
                 # pixel the mask's closing added, would otherwise be deleted while the
                 # estimate still lies on it.
                 if not ok or ze < z + 0.5 * tol_mm:
-                    if n == 0 and held and not precise:
+                    if n == 0 and held and not pr:
                         st = CARVE_NONE  # a noisy estimate cannot place a cut inside tissue
-                    if n > 0 and precise:
+                    if n > 0 and pr:
                         reach[v, u] = min(ze, start + tol_mm)
                     break
                 back = z
-                if not precise and (back - start) * ray_mm > max_layer_mm:
+                if not pr and (back - start) * ray_mm > max_layer_mm:
                     if n == 0:
                         st = CARVE_NONE  # thicker than what surgery takes: the estimate errs
                     break
@@ -145,7 +146,7 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
                     if tsdf[idx] < 0.0:
                         nxt = True
                         break
-                if nxt and not precise and ze < 0.5 * (start + z):
+                if nxt and not pr and ze < 0.5 * (start + z):
                     # Nearer the layer's front than the surface its removal would reveal.
                     if n == 0:
                         st = CARVE_NONE
@@ -154,8 +155,8 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
                 z1[v, u, n] = back
                 n += 1
                 st = CARVE_DELETED
-                if not nxt or z >= ze - tol_mm or not precise:
-                    if nxt and precise:
+                if not nxt or z >= ze - tol_mm or not pr:
+                    if nxt and pr:
                         reach[v, u] = min(ze, z + tol_mm)
                     break  # the estimate agrees with the next surface: deletion stops here
             status[v, u] = st
@@ -164,13 +165,13 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
 
 @numba.njit(parallel=True, cache=True)
 def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
-                 status, z0, z1, half_voxel_mm, votes, need_votes, reach, reach_free, reach_from,
-                 trunc_mm):  # fmt: skip
+                 status, z0, z1, half_voxel_mm, votes, need_votes, precise, reach, reach_free,
+                 reach_from, trunc_mm):  # fmt: skip
     # Voxel-centric, like the fusion kernel: a voxel is set free when its centre projects
     # (nearest pixel, lens distortion honoured) to a pixel whose ray deleted a layer and
     # its depth lies in that layer. A ray-centric walk would free every voxel a changed
     # ray merely grazes, eroding the rim of an opening by up to a voxel per view.
-    # need_votes > 1 (a noisy frame): the frame votes, and the voxel goes at its
+    # need_votes > 1: a pixel that is not ``precise`` votes, and the voxel goes at its
     # need_votes-th vote of the step. Behind the last deleted layer, tissue in front of the
     # pixel's ``reach`` (0 = none) takes the projective distance to it when its centre lies
     # in front of ``reach_free`` (see carve_first_layer).
@@ -204,7 +205,7 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
                     if za - half_voxel_mm <= zc < zb:
                         inside = True
                         idx = (i * ny + j) * nz + k
-                        if need_votes > 1 and tsdf[idx] < 1.0:
+                        if need_votes > 1 and not precise[v, u] and tsdf[idx] < 1.0:
                             if votes[idx] < 255:
                                 votes[idx] += 1
                             if votes[idx] < need_votes:
@@ -303,7 +304,7 @@ def carve_first_layer(
     tol_mm: float,
     reset: np.ndarray | None = None,
     max_layers: int = 4,
-    precise: bool = True,
+    precise: bool | np.ndarray = True,
     votes: np.ndarray | None = None,
     noisy_votes: int = 1,
     noisy_layer_mm: float = np.inf,
@@ -335,7 +336,9 @@ def carve_first_layer(
     set free at its ``noisy_votes``-th vote of the step (one vote per frame), so that one
     frame's wrong estimate deletes nothing alone. Such a frame deletes no layer thicker
     along its ray than ``noisy_layer_mm`` and leaves a pixel whose old surface lies deeper
-    than ``noisy_max_depth_mm`` (z-depth) alone.
+    than ``noisy_max_depth_mm`` (z-depth) alone. ``precise`` may be an (H, W) bool map:
+    a learnt estimate that knows where it is reliable (the change-aware network's
+    reliability head) is carved as precise there and as noisy elsewhere.
 
     m_t, m_new : (H, W) float32 z-depth of the model (at step start) and the estimate M',
         mm, NaN invalid; mask : (H, W) bool change mask; tol_mm : the frame's change
@@ -355,21 +358,25 @@ def carve_first_layer(
     reach = np.zeros((H, W))
     reach_from = np.zeros((H, W))
     m_t, m_new, mask = depth(m_t), depth(m_new), np.asarray(mask, bool)
+    if np.ndim(precise) != 0:
+        camera.check_image(np.asarray(precise), "precise")
+    precise_px = np.ascontiguousarray(np.broadcast_to(np.asarray(precise, dtype=bool), (H, W)))
     tsdf = _flat(model.tsdf, "model.tsdf")
     weight = _flat(model.weight, "model.weight")
     status = _carve_plan(
         tsdf, weight, shape, A, rays, m_t, m_new, mask,
         float(model.voxel_size_mm), float(model.trunc_mm), float(tol_mm),
-        int(max_layers), bool(precise), float(noisy_layer_mm), float(noisy_max_depth_mm),
+        int(max_layers), precise_px, float(noisy_layer_mm), float(noisy_max_depth_mm),
         z0, z1, reach,
     )  # fmt: skip
-    changed = mask & (status != CARVE_NONE) if precise and rim_px > 0 else None
+    # The rim is a precise estimate's: a noisy one cannot tell a cut's edge from its noise.
+    changed = mask & (status != CARVE_NONE) & precise_px if rim_px > 0 else None
     if changed is not None and changed.any():
         zt, ze = m_t.astype(np.float64), m_new.astype(np.float64)
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rim_px + 1, 2 * rim_px + 1))
         near = cv2.dilate(changed.astype(np.uint8), k) > 0
         with np.errstate(invalid="ignore"):
-            ring = near & (status == CARVE_NONE) & ~mask & (ze > zt)
+            ring = near & (status == CARVE_NONE) & ~mask & (ze > zt) & precise_px
             ring &= ze < zt + tol_mm  # deeper by more is a change the mask or its check refused
         reach[ring] = np.minimum(ze, zt + tol_mm)[ring]
         reach_from[ring] = zt[ring] - 0.5 * float(model.voxel_size_mm)
@@ -379,7 +386,7 @@ def carve_first_layer(
         raise InvalidInputError("reset", f"expected {model.shape} uint8, got {reset.shape}")
     r = _flat(reset, "reset") if reset is not None else np.zeros(1, np.uint8)
     need_votes, vt = 1, np.zeros(1, np.uint8)
-    if not precise and votes is not None and noisy_votes > 1:
+    if not precise_px.all() and votes is not None and noisy_votes > 1:
         if votes.shape != model.shape or votes.dtype != np.uint8:
             raise InvalidInputError("votes", f"expected {model.shape} uint8, got {votes.shape}")
         need_votes, vt = int(noisy_votes), _flat(votes, "votes")
@@ -394,7 +401,7 @@ def carve_first_layer(
         np.ascontiguousarray(T_cam_from_voxel[:3, :3]), np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
         camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64), _camera_tiles(camera, TILE_PX).r2_max,
-        status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes, reach,
+        status, z0, z1, 0.5 * float(model.voxel_size_mm), vt, need_votes, precise_px, reach,
         _reach_free(reach, rays, m_new, 0.25 * float(model.voxel_size_mm)), reach_from,
         float(model.trunc_mm),
     )  # fmt: skip

@@ -23,6 +23,12 @@ render itself where it sees no change, so its noise measured against the render 
 and its frames would carve as exact depth does, while a region it gets wrong deletes
 tissue that other views would not confirm (docs/updater.md).
 
+A learnt estimate may also say where it is reliable: after each call, its attribute
+``last_reliable_px`` holds an (H, W) bool map of the pixels whose depth it places to
+within the change threshold (None: nowhere known). The updater reads it right after the
+call, on the same thread (:func:`reliable_pixels`), and carves those pixels as precise
+depth, the rest as a noisy estimate (``chisel.carve.carve_first_layer``).
+
 A source that declares ``wants_prior = True`` is called as ``source(frame, prior_mm=R)``
 instead, with ``R`` the (H, W) float32 render of the model M_t at the frame's tracked pose
 (mm, NaN = no surface), the render the updater makes anyway (the change-aware network,
@@ -164,6 +170,23 @@ def estimate_depth(
             f"depth source {source!r} needs the model's render at the frame's pose (prior_mm)",
         )
     return source(frame, prior_mm=prior_mm)
+
+
+def reliable_pixels(source: object, frame: Frame, shape: tuple[int, ...]) -> np.ndarray | None:
+    """The (H, W) bool map of the pixels ``source`` declared reliable in its last call
+    (``last_reliable_px``), copied; None when it declares none. Call it right after the
+    source, on the same thread. Raises unless the map is bool of ``shape`` (the estimate's)."""
+    m = getattr(source, "last_reliable_px", None)
+    if m is None:
+        return None
+    m = np.asarray(m)
+    if m.dtype != np.bool_ or m.shape != tuple(shape):
+        raise InvalidInputError(
+            f"frame {frame.index}",
+            f"depth source {source!r} declared its reliable pixels as a {m.shape} {m.dtype} "
+            f"map; a {tuple(shape)} bool map (the estimate's size) is expected",
+        )
+    return m.copy()
 
 
 def load_network_source(checkpoint: str | Path) -> DepthSource:

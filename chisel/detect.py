@@ -54,6 +54,9 @@ class FrameInput:
     """(H, W) float32 M_t at the tracked pose, mm; None = rendered at detection."""
     scale0: float | None = None
     """The estimate's scale against M_t if already solved; None = solved at detection."""
+    reliable: np.ndarray | None = None
+    """(H, W) bool: where a learnt estimate declared its depth reliable
+    (:func:`chisel.depth_source.reliable_pixels`); carved as precise there."""
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ import numpy as np
 from chisel.carve import CARVE_DELETED, CARVE_FUSE, CARVE_NONE, carve_first_layer
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, check_rigid
-from chisel.depth_source import estimate_depth, is_estimate, is_metric
+from chisel.depth_source import estimate_depth, is_estimate, is_metric, reliable_pixels
 from chisel.detect import (
     Context,
     Detection,
@@ -65,6 +65,19 @@ def is_precise(threshold_mm: float, cfg: UpdateConfig, estimate: bool = False) -
     return not estimate and threshold_mm <= cfg.change.threshold_mm * (1.0 + 1e-6)
 
 
+def carve_precise(
+    threshold_mm: float, cfg: UpdateConfig, estimate: bool, reliable: np.ndarray | None
+) -> bool | np.ndarray:
+    """What :func:`chisel.carve.carve_first_layer` carves as precise: the whole frame
+    (:func:`is_precise`), or a learnt estimate's ``reliable`` pixels when its frame's
+    noise did not raise the threshold."""
+    if is_precise(threshold_mm, cfg, estimate):
+        return True
+    if reliable is not None and is_precise(threshold_mm, cfg, False):
+        return reliable
+    return False
+
+
 def fuse(
     model: TsdfModel,
     camera: Camera,
@@ -75,6 +88,7 @@ def fuse(
     keep_mask: bool = False,
     votes: np.ndarray | None = None,
     estimate: bool = False,
+    reliable: np.ndarray | None = None,
 ) -> FrameReport:
     """Carve a detected frame's change mask into ``model`` (in place): the frame's report.
 
@@ -82,8 +96,10 @@ def fuse(
     (H, W, 3) uint8 colour of the frame (used when the model has colour); votes : (X, Y, Z)
     uint8, the step's deletion votes of noisy frames (``cfg.noisy_votes``; updated in
     place; None = a noisy frame deletes alone); estimate : the frame's depth source is a
-    learnt estimate (:func:`chisel.depth_source.is_estimate`), carved as a noisy frame. A
-    frame not used (its scale could not be solved) only gets its report.
+    learnt estimate (:func:`chisel.depth_source.is_estimate`), carved as a noisy frame;
+    reliable : (H, W) bool, the pixels where such an estimate declared itself reliable
+    (:func:`chisel.depth_source.reliable_pixels`), carved as precise unless the frame's
+    noise raised its threshold. A frame not used (its scale could not be solved) only gets its report.
     """
     if not det.used:
         return FrameReport(
@@ -100,7 +116,8 @@ def fuse(
         # depth only where the model holds nothing behind.
         status, voxels_deleted = carve_first_layer(
             model, camera, det.T_world_from_cam, det.m_t, det.m_prime, mask, det.threshold_mm,
-            reset=reset, precise=is_precise(det.threshold_mm, cfg, estimate), votes=votes,
+            reset=reset, precise=carve_precise(det.threshold_mm, cfg, estimate, reliable),
+            votes=votes,
             noisy_votes=cfg.noisy_votes, noisy_layer_mm=cfg.noisy_layer_mm,
             noisy_max_depth_mm=cfg.noisy_max_depth_mm, rim_px=cfg.rim_px,
         )  # fmt: skip
@@ -240,7 +257,8 @@ class ChiselUpdater:
         with M_t is skipped (``used = False``) and leaves the model untouched; keep_maps :
         the report keeps the carved change mask.
         """
-        return self._carve(frame, *self._prepare(frame), keep_maps)
+        T, R, estimate, reliable = self._prepare(frame)
+        return self._carve(frame, T, R, estimate, keep_maps, reliable)
 
     def process_stream(
         self, frames: Iterable[Frame], keep_maps: bool = False
@@ -262,17 +280,17 @@ class ChiselUpdater:
         """
 
         def carve(
-            job: tuple[Frame, Future[tuple[np.ndarray, np.ndarray, np.ndarray]]],
+            job: tuple[Frame, Future[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]]],
         ) -> FrameReport:
             frame, prepared = job
-            T, R, estimate = prepared.result()
+            T, R, estimate, reliable = prepared.result()
             # numba's kernels run on this thread alone (the setting is per thread): its
             # OpenMP workers spin-wait between kernels and would take the core that the
             # worker's inference needs (the overlap then gained nothing).
             threads = numba.get_num_threads()
             numba.set_num_threads(1)
             try:
-                return self._carve(frame, T, R, estimate, keep_maps)
+                return self._carve(frame, T, R, estimate, keep_maps, reliable)
             finally:
                 numba.set_num_threads(threads)
 
@@ -286,15 +304,20 @@ class ChiselUpdater:
             if pending is not None:
                 yield carve(pending)
 
-    def _prepare(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The frame's checked tracked pose, M_t rendered there, and the validated estimate."""
+    def _prepare(
+        self, frame: Frame
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """The frame's checked tracked pose, M_t rendered there, the validated estimate and
+        the pixels its source declared reliable (read on the thread that called it)."""
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
         R = self.renderer.render(self.camera, T)
-        return T, R, self.estimate(frame, R)
+        E = self.estimate(frame, R)
+        return T, R, E, reliable_pixels(self.depth_source, frame, E.shape)
 
     def _carve(
-        self, frame: Frame, T: np.ndarray, R: np.ndarray, estimate: np.ndarray, keep_maps: bool
-    ) -> FrameReport:
+        self, frame: Frame, T: np.ndarray, R: np.ndarray, estimate: np.ndarray, keep_maps: bool,
+        reliable: np.ndarray | None = None,
+    ) -> FrameReport:  # fmt: skip
         """Detect a frame's change from its estimate and carve it into the model."""
         inp = FrameInput(frame, T, estimate, render_mm=R)
         ctx = Context(
@@ -305,7 +328,7 @@ class ChiselUpdater:
         self._hand_eye.learn(det)
         rep = fuse(
             self.model, self.camera, det, self.cfg, self._reset_grid(), frame.rgb, keep_maps,
-            votes=self._votes, estimate=is_estimate(self.depth_source),
+            votes=self._votes, estimate=is_estimate(self.depth_source), reliable=reliable,
         )  # fmt: skip
         self._frames.append(rep)
         return rep

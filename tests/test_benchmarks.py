@@ -7,6 +7,7 @@ goals are met in benchmarks/, not in timed tests.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import subprocess
@@ -147,7 +148,13 @@ def test_bench_depth_train_refuses_a_single_phantom() -> None:
 
 
 def test_bench_carve_oracle_sources_put_true_depth_where_the_network_decides() -> None:
-    from chisel.depth_source import GroundTruthDepth, is_estimate, is_metric, wants_prior
+    from chisel.depth_source import (
+        GroundTruthDepth,
+        is_estimate,
+        is_metric,
+        reliable_pixels,
+        wants_prior,
+    )
     from chisel.io.sequence import Frame
     from chisel.update_config import UpdateConfig
     from chisel.updater import is_precise
@@ -181,6 +188,17 @@ def test_bench_carve_oracle_sources_put_true_depth_where_the_network_decides() -
     assert not is_precise(1.0, cfg, is_estimate(source))
     assert not is_precise(1.0, cfg, is_estimate(noisy))
     assert is_precise(1.0, cfg, is_estimate(GroundTruthDepth()))
+    # The oracle reliability head: the network's own depth, reliable where it lies within
+    # the tolerance of the truth (here: 1.5 mm off everywhere but the window, 8.5 mm there).
+    reliable = oracle.OracleReliable(Network(), tol_mm=1.6)
+    np.testing.assert_array_equal(reliable(frame, prior_mm=prior), prior + 1.0)
+    assert reliable.last_reliable_px is not None
+    np.testing.assert_array_equal(reliable.last_reliable_px, np.abs(prior + 1.0 - true) <= 1.6)
+    assert reliable.last_reliable_px.sum() == 16 and is_estimate(reliable)
+    assert reliable_pixels(reliable, frame, true.shape) is not None
+    # The frame's pose, as a tracker without error would report it.
+    moved = oracle.with_true_pose(dataclasses.replace(frame, T_world_from_cam_true=2 * np.eye(4)))
+    np.testing.assert_array_equal(moved.T_world_from_cam, 2 * np.eye(4))
 
 
 def test_bench_fidelity_figures_from_a_table() -> None:

@@ -466,3 +466,79 @@ def test_a_learnt_estimate_is_carved_as_noisy_whatever_its_measured_noise(scene:
     for f in fr[:2]:
         up.process(f)
     assert not ((scene["model"].tsdf < 0) & (up.model.tsdf > 0)).any()
+
+
+def test_a_per_pixel_precise_map_carves_each_pixel_by_its_own_rule() -> None:
+    """``precise`` as an (H, W) map (a learnt estimate's reliable pixels): inside a 4 mm
+    wall the reliable pixels place a partial cut (fused), the others leave the wall alone;
+    through a lamella the reliable pixels delete at once, the others only vote."""
+    from chisel.carve import CARVE_FUSE, CARVE_NONE, carve_first_layer
+
+    reliable = np.zeros(CAM.shape, bool)
+    reliable[:, :48] = True  # the left half of the image (the patch is columns 38-57)
+    status, n = _carve_at(_walls_model([(10.0, 14.0)]), 12.0, reliable)
+    assert n == 0
+    assert np.all(status[30:50, 38:48] == CARVE_FUSE) and np.all(status[30:50, 48:58] == CARVE_NONE)
+
+    model = _walls_model([(10.0, 10.8)])
+    m = model.copy()
+    votes = np.zeros(m.shape, np.uint8)
+    _, n = _carve_at(m, 18.0, reliable, votes=votes, noisy_votes=3)
+    freed = (model.tsdf < 0) & (m.tsdf > 0)
+    assert n == int(freed.sum()) > 0
+    # What was freed projects to the reliable pixels; the others' voxels only got a vote.
+    T = look_at(np.zeros(3), np.array([0.0, 0.0, 10.0]), np.array([0.0, -1.0, 0.0]))
+    uv, _ = CAM.project(transform_points(np.linalg.inv(T), _points(model)[freed]))
+    assert np.round(uv[:, 0]).max() <= 48
+    assert (votes == 1).sum() > 0 and not (votes.astype(bool) & freed).any()
+    # A map of another size is refused, naming it.
+    with pytest.raises(InvalidInputError, match="precise"):
+        carve_first_layer(
+            model.copy(), CAM, T, np.full(CAM.shape, 10.0, np.float32),
+            np.full(CAM.shape, 18.0, np.float32), np.ones(CAM.shape, bool), tol_mm=1.0,
+            precise=np.ones((3, 3), bool),
+        )  # fmt: skip
+
+
+class _DeclaredReliable(GroundTruthDepth):
+    """Exact depth declared a learnt estimate that says every pixel is reliable."""
+
+    is_estimate = True
+
+    def __init__(self, shape: tuple[int, int] | None = None) -> None:
+        self.shape = shape
+        self.last_reliable_px: np.ndarray | None = None
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        d = super().__call__(frame)
+        self.last_reliable_px = np.ones(self.shape or d.shape, bool)
+        return d
+
+
+def test_an_estimate_reliable_everywhere_carves_as_exact_depth(scene: dict) -> None:
+    """The updater carves a learnt estimate's declared reliable pixels as precise: declared
+    reliable everywhere, exact depth gives exact depth's model, in batch and streaming;
+    declared an estimate without a map, it gives another (the noisy carving's)."""
+    from chisel.updater import ChiselUpdater
+
+    true = _poses(30, seed=2)
+    fr = _frames(scene["after"], true, true)
+    exact, _ = update_step(scene["model"], CAM, fr, GroundTruthDepth())
+    declared, _ = update_step(scene["model"], CAM, fr, _DeclaredReliable())
+    np.testing.assert_array_equal(declared.tsdf, exact.tsdf)
+    streamed = []
+    for source in (GroundTruthDepth(), _DeclaredReliable()):
+        upd = ChiselUpdater(scene["model"], CAM, source)
+        upd.begin_step()
+        list(upd.process_stream(fr))
+        upd.end_step()
+        streamed.append(upd.model.tsdf)
+    np.testing.assert_array_equal(streamed[1], streamed[0])
+
+    class _Estimate(GroundTruthDepth):
+        is_estimate = True
+
+    noisy, _ = update_step(scene["model"], CAM, fr, _Estimate())
+    assert (noisy.tsdf != exact.tsdf).any()
+    with pytest.raises(InvalidInputError, match=r"reliable pixels.*\(3, 3\)"):
+        update_step(scene["model"], CAM, fr, _DeclaredReliable((3, 3)))
