@@ -222,6 +222,7 @@ def _integrate_kernel(
     trunc_mm,
     lateral_px,
     use_lateral,
+    unobserved_only,
 ):
     # Inputs are sanitised by the caller: depth <= 0 means invalid (no NaN reaches here,
     # which keeps fastmath's no-NaN assumption true). The volume arrays are flat; R's
@@ -352,6 +353,12 @@ def _integrate_kernel(
                         if d > 1.0:
                             d = 1.0
                         idx = base + k * sc
+                        if (
+                            unobserved_only
+                            and weight[idx] > 0.0
+                            and not (use_reset and reset[idx] != 0)
+                        ):
+                            continue  # observed before this step: keep what was seen
                         if use_reset and reset[idx] == 0:
                             reset[idx] = 1
                             weight[idx] = 0.0
@@ -484,6 +491,7 @@ def integrate(
     rgb: np.ndarray | None = None,
     reset: np.ndarray | None = None,
     lateral_px: np.ndarray | None = None,
+    unobserved_only: bool = False,
 ) -> int:
     """Fuse one depth map into ``model`` **in place**; returns the number of voxels updated.
 
@@ -506,6 +514,9 @@ def integrate(
         (the rim of a bite), the projective distance d* says "far from any surface" while
         the true distance is the gap to the rim, and an unbounded d* would pull the rim
         back by up to a voxel. Signs never change, so no surface is created.
+    unobserved_only : write only voxels the model has never observed (weight 0) or that
+        ``reset`` marks as already rewritten in this step: filling a model's holes without
+        overwriting what it observed.
     """
     T = check_rigid(T_world_from_cam, "T_world_from_cam")
     depth = np.asarray(depth_mm, dtype=np.float32)
@@ -560,38 +571,17 @@ def integrate(
     T_voxel_from_cam = np.linalg.inv(T_cam_from_voxel)
     strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)[axes]
     n = _integrate_kernel(
-        _flat(model.tsdf, "model.tsdf"),
-        _flat(model.weight, "model.weight"),
-        _flat(color, "model.color").reshape(-1, 3),
-        use_color,
-        _flat(reset_arr, "reset"),
-        use_reset,
-        depth,
-        pix_w,
-        use_weight,
-        rgb_arr,
+        _flat(model.tsdf, "model.tsdf"), _flat(model.weight, "model.weight"),
+        _flat(color, "model.color").reshape(-1, 3), use_color,
+        _flat(reset_arr, "reset"), use_reset, depth, pix_w, use_weight, rgb_arr,
         np.ascontiguousarray(T_cam_from_voxel[:3, :3][:, axes]),
-        np.ascontiguousarray(T_cam_from_voxel[:3, 3]),
-        strides,
-        int(shape[c]),
-        camera.fx,
-        camera.fy,
-        camera.cx,
-        camera.cy,
+        np.ascontiguousarray(T_cam_from_voxel[:3, 3]), strides, int(shape[c]),
+        camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64),
-        tiles.r2_max,
-        tiles.grid,
-        tiles.nx,
-        tiles.ny,
-        work,
-        z_far,
-        bucket_offsets,
+        tiles.r2_max, tiles.grid, tiles.nx, tiles.ny, work, z_far, bucket_offsets,
         np.ascontiguousarray(T_voxel_from_cam[:3, :3][axes]),
         np.ascontiguousarray(T_voxel_from_cam[:3, 3][axes]),
-        int(shape[axes[0]]),
-        int(shape[axes[1]]),
-        float(model.trunc_mm),
-        lateral,
-        use_lateral,
-    )
+        int(shape[axes[0]]), int(shape[axes[1]]), float(model.trunc_mm),
+        lateral, use_lateral, bool(unobserved_only),
+    )  # fmt: skip
     return int(n)

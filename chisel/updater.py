@@ -99,7 +99,8 @@ def fuse(
     learnt estimate (:func:`chisel.depth_source.is_estimate`), carved as a noisy frame;
     reliable : (H, W) bool, the pixels where such an estimate declared itself reliable
     (:func:`chisel.depth_source.reliable_pixels`), carved as precise unless the frame's
-    noise raised its threshold. A frame not used (its scale could not be solved) only gets its report.
+    noise raised its threshold. With ``cfg.fill_unseen`` the estimate is also fused where
+    the model shows no surface, into voxels it never observed. A frame not used (its scale could not be solved) only gets its report.
     """
     if not det.used:
         return FrameReport(
@@ -132,6 +133,17 @@ def fuse(
         model, camera, det.T_world_from_cam, det.m_prime, pixel_weight=fuse_mask, rgb=rgb,
         reset=reset, lateral_px=lateral,
     )  # fmt: skip
+    if cfg.fill_unseen:
+        # Where the model shows no surface the estimate fills its holes; it never
+        # overwrites what the model observed (a hole in its surface mesh can lie in front
+        # of observed tissue whose faces were dropped at the edge of the unobserved).
+        with np.errstate(invalid="ignore"):
+            unseen = ~np.isfinite(det.m_t) & (det.m_prime > 0) & ~fuse_mask
+        if unseen.any():
+            voxels_updated += integrate(
+                model, camera, det.T_world_from_cam, det.m_prime, pixel_weight=unseen, rgb=rgb,
+                reset=reset, unobserved_only=True,
+            )  # fmt: skip
     valid = np.isfinite(det.m_t)
     return FrameReport(
         index=det.index,

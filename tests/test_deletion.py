@@ -542,3 +542,47 @@ def test_an_estimate_reliable_everywhere_carves_as_exact_depth(scene: dict) -> N
     assert (noisy.tsdf != exact.tsdf).any()
     with pytest.raises(InvalidInputError, match=r"reliable pixels.*\(3, 3\)"):
         update_step(scene["model"], CAM, fr, _DeclaredReliable((3, 3)))
+
+
+def test_fill_unseen_fuses_depth_where_a_sweep_only_model_shows_nothing(scene: dict) -> None:
+    """A model built from a sweep that saw only the middle of the wall (the paper's build)
+    shows no surface around it; the paper's masked update never fills that (no change is
+    measured against nothing). With ``fill_unseen`` exact depth fills it, on the true wall,
+    and never rewrites a voxel the sweep observed."""
+    from chisel.render import ModelRenderer
+
+    before = scene["before"]
+    preop = _poses(8, seed=1)
+    centre = np.zeros(CAM.shape, bool)
+    centre[30:50, 38:58] = True
+    rc = MeshRaycaster.from_trimesh(before)
+    model = build_preop_model(
+        before, CAM, preop, BuildConfig(VOXEL_MM, 2.0), masks=[centre] * len(preop)
+    )
+    true = _poses(20, seed=2)
+    fr = _frames(before, true, true)  # no surgery: exact depth of the same scene
+
+    def missing(m: TsdfModel) -> float:
+        r = ModelRenderer(m)
+        return float(np.mean([np.isnan(r.render(CAM, T)).mean() for T in true]))
+
+    assert UpdateConfig().fill_unseen
+    kept, _ = update_step(model, CAM, fr, GroundTruthDepth(), UpdateConfig(fill_unseen=False))
+    filled, _ = update_step(model, CAM, fr, GroundTruthDepth())
+    assert missing(model) > 0.3
+    assert missing(kept) == pytest.approx(missing(model))
+    assert missing(filled) < 0.05
+    # The new surface is the wall's: every filled render lies on the truth within a voxel.
+    r = ModelRenderer(filled)
+    for T in true[:5]:
+        d, t = r.render(CAM, T), rc.render_depth(CAM, T)
+        ok = np.isfinite(d) & np.isfinite(t)
+        assert (
+            np.median(np.abs(d[ok] - t[ok])) < 0.1
+            and np.mean(np.abs(d[ok] - t[ok]) < VOXEL_MM) > 0.95
+        )
+    # Nothing changed, so nothing was carved: every voxel the sweep observed is as it was.
+    seen = model.weight > 0
+    np.testing.assert_array_equal(filled.tsdf[seen], model.tsdf[seen])
+    np.testing.assert_array_equal(filled.weight[seen], model.weight[seen])
+    assert (filled.weight > 0).sum() > seen.sum()

@@ -146,6 +146,35 @@ def test_masked_update_resets_weight_and_takes_new_depth() -> None:
     assert np.all(m.weight[touched] == 2.0)
 
 
+def test_unobserved_only_writes_what_was_never_observed_or_rewritten_this_step() -> None:
+    # A plane at z = 10 seen by the left half of the image only; then the whole image sees
+    # a plane at z = 12, fused only into voxels never observed (or reset in this step).
+    cam = Camera.from_fov(32, 24, 60.0)
+    m = TsdfModel.empty([-8, -8, 0.25], [8, 8, 20], 0.5, 1.5)
+    left = np.zeros(cam.shape, bool)
+    left[:, :16] = True
+    integrate(m, cam, np.eye(4), np.full(cam.shape, 10.0, np.float32), left)
+    before = m.copy()
+    seen = m.weight > 0
+    reset = np.zeros(m.shape, np.uint8)
+    n = integrate(
+        m, cam, np.eye(4), np.full(cam.shape, 12.0, np.float32), reset=reset, unobserved_only=True
+    )
+    assert n > 0
+    assert m.tsdf[seen].tobytes() == before.tsdf[seen].tobytes()
+    assert m.weight[seen].tobytes() == before.weight[seen].tobytes()
+    new = (m.weight > 0) & ~seen
+    z = _voxel_centres(m)[..., 2]
+    np.testing.assert_allclose(m.tsdf[new], np.minimum(1.0, (12.0 - z[new]) / 1.5), atol=1e-5)
+    assert np.all(m.weight[new] == 1.0) and np.array_equal(reset.astype(bool), new)
+    # In the same step, a voxel it wrote is averaged again; the observed ones still are not.
+    integrate(
+        m, cam, np.eye(4), np.full(cam.shape, 12.0, np.float32), reset=reset, unobserved_only=True
+    )
+    assert np.all(m.weight[new] == 2.0)
+    assert m.tsdf[seen].tobytes() == before.tsdf[seen].tobytes()
+
+
 def test_colour_is_averaged_in_the_band() -> None:
     cam = Camera.from_fov(32, 24, 60.0)
     m = TsdfModel.empty([-8, -8, 0.25], [8, 8, 20], 0.5, 1.5, with_color=True)

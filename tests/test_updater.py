@@ -94,9 +94,13 @@ def test_known_removal_with_exact_depth(scene: dict) -> None:
     floor = region[np.abs(region[:, 2] - 29.0) < VOXEL]
     assert len(floor) > 50
     assert not np.any(_in_box(before.vertices, BITE_LO + [0.5, 0.5, 1.5], BITE_HI - 0.5))
-    # Unchanged surface away from the bite moves less than half a voxel.
+    # Unchanged surface away from the bite moves less than half a voxel; where the sweep
+    # left a hole, the surface the frames filled in (``fill_unseen``) lies on the tissue.
     far = ~_in_box(after.vertices, BITE_LO - 2.0, BITE_HI + 2.0)
-    assert _distance_to(before, after.vertices[far]).max() < VOXEL / 2
+    d_old = _distance_to(before, after.vertices[far])
+    d_true = _distance_to(scene["tissue"], after.vertices[far])
+    new = d_old >= VOXEL / 2
+    assert new.mean() < 0.01 and np.all(d_true[new] < VOXEL / 2)
     # The input model was not modified.
     assert model.step == 0
 
@@ -211,12 +215,18 @@ def test_registration_ablation_and_threshold(scene: dict) -> None:
     frac_mv = np.mean([f.changed_fraction for f in rep_mv.frames])
     assert frac_mv < 0.5 * frac_off
     assert sum(f.unconfirmed_px for f in rep_mv.frames) > 0
-    # A threshold above the 4 mm pocket depth sees no change: model bit-identical.
+    # A threshold above the 4 mm pocket depth sees no change: the paper's masked update
+    # leaves the model bit-identical; filling the sweep's holes writes only what it never
+    # observed.
     high = replace(UpdateConfig(), change=replace(UpdateConfig().change, threshold_mm=6.0))
-    same, rep_hi = update_step(model, cam, fr, GroundTruthDepth(), high)
+    same, rep_hi = update_step(model, cam, fr, GroundTruthDepth(), replace(high, fill_unseen=False))
     assert all(f.changed_fraction == 0 for f in rep_hi.frames)
     assert same.tsdf.tobytes() == model.tsdf.tobytes()
     assert same.weight.tobytes() == model.weight.tobytes()
+    filled, _ = update_step(model, cam, fr, GroundTruthDepth(), high)
+    seen = model.weight > 0
+    assert filled.tsdf[seen].tobytes() == model.tsdf[seen].tobytes()
+    assert filled.weight[seen].tobytes() == model.weight[seen].tobytes()
 
 
 def test_streaming_updater_tracks_hand_eye(scene: dict) -> None:
