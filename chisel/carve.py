@@ -337,8 +337,8 @@ def carve_first_layer(
     frame's wrong estimate deletes nothing alone. Such a frame deletes no layer thicker
     along its ray than ``noisy_layer_mm`` and leaves a pixel whose old surface lies deeper
     than ``noisy_max_depth_mm`` (z-depth) alone. ``precise`` may be an (H, W) bool map:
-    a learnt estimate that knows where it is reliable (the change-aware network's
-    reliability head) is carved as precise there and as noisy elsewhere.
+    a learnt estimate that declares where it is reliable (``last_reliable_px``,
+    :mod:`chisel.depth_source`) is carved as precise there and as noisy elsewhere.
 
     m_t, m_new : (H, W) float32 z-depth of the model (at step start) and the estimate M',
         mm, NaN invalid; mask : (H, W) bool change mask; tol_mm : the frame's change
