@@ -100,7 +100,8 @@ def fuse(
     reliable : (H, W) bool, the pixels where such an estimate declared itself reliable
     (:func:`chisel.depth_source.reliable_pixels`), carved as precise unless the frame's
     noise raised its threshold. With ``cfg.fill_unseen`` the estimate is also fused where
-    the model shows no surface, into voxels it never observed. A frame not used (its scale could not be solved) only gets its report.
+    the model shows no surface, into voxels it never observed. A frame not used (its scale
+    could not be solved) only gets its report.
     """
     if not det.used:
         return FrameReport(
@@ -269,8 +270,7 @@ class ChiselUpdater:
         with M_t is skipped (``used = False``) and leaves the model untouched; keep_maps :
         the report keeps the carved change mask.
         """
-        T, R, estimate, reliable = self._prepare(frame)
-        return self._carve(frame, T, R, estimate, keep_maps, reliable)
+        return self._carve(self._prepare(frame), keep_maps)
 
     def process_stream(
         self, frames: Iterable[Frame], keep_maps: bool = False
@@ -291,47 +291,40 @@ class ChiselUpdater:
         after the reports of the frames before it.
         """
 
-        def carve(
-            job: tuple[Frame, Future[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]]],
-        ) -> FrameReport:
-            frame, prepared = job
-            T, R, estimate, reliable = prepared.result()
+        def carve(prepared: Future[FrameInput]) -> FrameReport:
+            inp = prepared.result()
             # numba's kernels run on this thread alone (the setting is per thread): its
             # OpenMP workers spin-wait between kernels and would take the core that the
             # worker's inference needs (the overlap then gained nothing).
             threads = numba.get_num_threads()
             numba.set_num_threads(1)
             try:
-                return self._carve(frame, T, R, estimate, keep_maps, reliable)
+                return self._carve(inp, keep_maps)
             finally:
                 numba.set_num_threads(threads)
 
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="chisel-depth") as pool:
             pending = None
             for frame in frames:
-                job = (frame, pool.submit(self._prepare, frame))
+                job = pool.submit(self._prepare, frame)
                 if pending is not None:
                     yield carve(pending)
                 pending = job
             if pending is not None:
                 yield carve(pending)
 
-    def _prepare(
-        self, frame: Frame
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    def _prepare(self, frame: Frame) -> FrameInput:
         """The frame's checked tracked pose, M_t rendered there, the validated estimate and
         the pixels its source declared reliable (read on the thread that called it)."""
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
         R = self.renderer.render(self.camera, T)
         E = self.estimate(frame, R)
-        return T, R, E, reliable_pixels(self.depth_source, frame, E.shape)
+        return FrameInput(
+            frame, T, E, R, reliable=reliable_pixels(self.depth_source, frame, E.shape)
+        )
 
-    def _carve(
-        self, frame: Frame, T: np.ndarray, R: np.ndarray, estimate: np.ndarray, keep_maps: bool,
-        reliable: np.ndarray | None = None,
-    ) -> FrameReport:  # fmt: skip
+    def _carve(self, inp: FrameInput, keep_maps: bool) -> FrameReport:
         """Detect a frame's change from its estimate and carve it into the model."""
-        inp = FrameInput(frame, T, estimate, render_mm=R)
         ctx = Context(
             self.camera, self.renderer, self.cfg, scale_free(self.cfg, self.depth_source),
             self.hand_eye, self._hand_eye.prior, self._hand_eye.may_retry(self.cfg.frame_ransac),
@@ -339,8 +332,8 @@ class ChiselUpdater:
         det = detect(inp, ctx)
         self._hand_eye.learn(det)
         rep = fuse(
-            self.model, self.camera, det, self.cfg, self._reset_grid(), frame.rgb, keep_maps,
-            votes=self._votes, estimate=is_estimate(self.depth_source), reliable=reliable,
+            self.model, self.camera, det, self.cfg, self._reset_grid(), inp.frame.rgb, keep_maps,
+            votes=self._votes, estimate=is_estimate(self.depth_source), reliable=inp.reliable,
         )  # fmt: skip
         self._frames.append(rep)
         return rep

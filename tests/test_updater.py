@@ -33,6 +33,7 @@ from chisel.core.errors import (
 from chisel.core.geometry import invert_rigid, rotation_angle_deg
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth, GroundTruthDepth
+from chisel.detect import FrameInput
 from chisel.io.sequence import Frame
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
@@ -272,13 +273,13 @@ def test_streamed_frames_overlap_the_estimate_and_match_frame_by_frame(
     streamed.begin_step()
     carve = streamed._carve
 
-    def carve_once_the_next_estimate_ran(frame: Frame, *args: Any) -> FrameReport:
+    def carve_once_the_next_estimate_ran(inp: FrameInput, *args: Any) -> FrameReport:
         # Frame i is carved only after frame i + 1's estimate has run: a process_stream
         # that estimated a frame after carving the one before would wait here in vain.
         # (Without this wait the order below was a race: it failed once in CI, under load.)
-        nxt = started.get(frame.index + 1)
-        assert nxt is None or nxt.wait(timeout=60), f"frame {frame.index + 1} not estimated"
-        return carve(frame, *args)
+        nxt = started.get(inp.frame.index + 1)
+        assert nxt is None or nxt.wait(timeout=60), f"frame {inp.frame.index + 1} not estimated"
+        return carve(inp, *args)
 
     monkeypatch.setattr(streamed, "_carve", carve_once_the_next_estimate_ran)
     got = []
