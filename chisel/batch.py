@@ -36,6 +36,7 @@ from chisel.detect import (
     scale_free,
     validate_estimate,
 )
+from chisel.fill import confirm_fill
 from chisel.fusion import check_pose_in_model
 from chisel.icp import icp_similarity
 from chisel.io.sequence import Frame
@@ -201,6 +202,8 @@ def update_step(
         dets.append(det)
     if cfg.change.min_views > 0:
         dets = confirm_changes(dets, camera, cfg.change)
+    if step_cfg.fill_unseen and step_cfg.fill_confirmed:
+        dets = confirm_fill(dets, model, camera, step_cfg)
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)
     votes = np.zeros(new.shape, dtype=np.uint8)

@@ -1,0 +1,228 @@
+"""Which pixels of a step may fill a model's never-observed voxels (batch mode).
+
+A model built from the preoperative sweep alone (the paper's build) has voxels that no
+frame ever observed. ``UpdateConfig.fill_unseen`` fuses a frame's estimate into them where
+the model shows no surface at all, with no check: one view is all there is of a hole. A
+never-observed voxel can also lie next to a surface the model shows (the side of a hole
+seen through its rim, tissue behind a lamella's edge), and there a single view's estimate
+is not enough: a frame of garbage depth would write surfaces into every unobserved voxel
+it reaches. ``UpdateConfig.fill_confirmed`` lets a pixel fill there only when other
+frames of the step put the same surface point where it does, as the change mask's
+multi-view check does for removal (:func:`chisel.change.multiview_support`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import cast
+
+import cv2
+import numba
+import numpy as np
+
+from chisel.change import _pixel_of
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera, invert_rigid
+from chisel.detect import Detection
+from chisel.model import TsdfModel
+from chisel.update_config import UpdateConfig
+
+
+@numba.njit(parallel=True, cache=True)
+def _near_unobserved_kernel(depth, rays, T_vc, weight, band, step, out):  # fmt: skip
+    H, W = depth.shape
+    nx, ny, nz = weight.shape
+    n_s = int(np.floor(2.0 * band / step)) + 1
+    for v in numba.prange(H):
+        for u in range(W):
+            d = depth[v, u]
+            if not (d > 0.0):
+                continue
+            for s in range(n_s):
+                z = d - band + s * step
+                if z <= 1e-3:
+                    continue
+                x = rays[v, u, 0] * z
+                y = rays[v, u, 1] * z
+                zz = rays[v, u, 2] * z
+                a = T_vc[0, 0] * x + T_vc[0, 1] * y + T_vc[0, 2] * zz + T_vc[0, 3]
+                b = T_vc[1, 0] * x + T_vc[1, 1] * y + T_vc[1, 2] * zz + T_vc[1, 3]
+                c = T_vc[2, 0] * x + T_vc[2, 1] * y + T_vc[2, 2] * zz + T_vc[2, 3]
+                ia = int(np.floor(a + 0.5))
+                ib = int(np.floor(b + 0.5))
+                ic = int(np.floor(c + 0.5))
+                if ia < 0 or ib < 0 or ic < 0 or ia >= nx or ib >= ny or ic >= nz:
+                    continue
+                if weight[ia, ib, ic] <= 0.0:
+                    out[v, u] = True
+                    break
+
+
+def near_unobserved(
+    model: TsdfModel, camera: Camera, T_world_from_cam: np.ndarray, depth_mm: np.ndarray
+) -> np.ndarray:
+    """(H, W) bool: pixels whose depth has a voxel the model never observed (weight 0)
+    within two voxels in front of or behind it along the ray.
+
+    depth_mm : (H, W) float32 z-depth, NaN or <= 0 = none. The voxels next to a surface
+    are those that place it (the zero crossing); farther from it, a voxel that the sweep
+    missed at the edge of its truncation band changes no surface. Points outside the grid
+    count as observed: nothing can be written there.
+    """
+    d = np.asarray(depth_mm, dtype=np.float32)
+    if d.shape != camera.shape:
+        raise InvalidInputError("depth_mm", f"shape {d.shape} is not the camera's {camera.shape}")
+    # Camera mm -> voxel index (T_world_from_voxel scales by the voxel size: not rigid).
+    T_vc = np.linalg.inv(model.T_world_from_voxel) @ np.asarray(T_world_from_cam, np.float64)
+    out = np.zeros(camera.shape, dtype=np.bool_)
+    _near_unobserved_kernel(
+        np.nan_to_num(d, nan=0.0), np.ascontiguousarray(camera.rays_cam()), T_vc,
+        model.weight, min(2.0 * model.voxel_size_mm, float(model.trunc_mm)),
+        0.5 * float(model.voxel_size_mm), out,
+    )  # fmt: skip
+    return out
+
+
+def depth_edges(depth_mm: np.ndarray, jump_mm: float) -> np.ndarray:
+    """(H, W) bool: pixels without depth, next to one, or whose 3 x 3 neighbourhood spans
+    more than ``jump_mm`` of depth (a silhouette).
+
+    Projective fusion places a voxel beside a silhouette on the edge pixel's depth and so
+    widens the near surface into the background by up to a pixel's footprint; where the
+    model holds nothing to correct it, that stays.
+    """
+    d = np.asarray(depth_mm, dtype=np.float32)
+    valid = np.isfinite(d) & (d > 0)
+    k = np.ones((3, 3), np.uint8)
+    hi = cv2.dilate(np.where(valid, d, 0.0).astype(np.float32), k)
+    lo = cv2.erode(np.where(valid, d, np.inf).astype(np.float32), k)
+    near_invalid = cv2.dilate((~valid).astype(np.uint8), k) > 0
+    with np.errstate(invalid="ignore"):
+        return near_invalid | ~(hi - lo <= jump_mm)
+
+
+@numba.njit(parallel=True, cache=True)
+def _agreement_kernel(cands, ests, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist, tol_mm,
+                      support, observed):  # fmt: skip
+    N, H, W = cands.shape
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for i in numba.prange(N):
+        if not used[i]:
+            continue
+        for v in range(H):
+            for u in range(W):
+                if not cands[i, v, u]:
+                    continue
+                e = ests[i, v, u]
+                # The surface point this pixel's estimate puts in the world, mm.
+                x = rays[v, u, 0] * e
+                y = rays[v, u, 1] * e
+                z = rays[v, u, 2] * e
+                X = T_wc[i, 0, 0] * x + T_wc[i, 0, 1] * y + T_wc[i, 0, 2] * z + T_wc[i, 0, 3]
+                Y = T_wc[i, 1, 0] * x + T_wc[i, 1, 1] * y + T_wc[i, 1, 2] * z + T_wc[i, 1, 3]
+                Z = T_wc[i, 2, 0] * x + T_wc[i, 2, 1] * y + T_wc[i, 2, 2] * z + T_wc[i, 2, 3]
+                n_sup = 0
+                n_obs = 0
+                for j in range(N):
+                    if j == i or not used[j]:
+                        continue
+                    xc = T_cw[j, 0, 0] * X + T_cw[j, 0, 1] * Y + T_cw[j, 0, 2] * Z + T_cw[j, 0, 3]
+                    yc = T_cw[j, 1, 0] * X + T_cw[j, 1, 1] * Y + T_cw[j, 1, 2] * Z + T_cw[j, 1, 3]
+                    zc = T_cw[j, 2, 0] * X + T_cw[j, 2, 1] * Y + T_cw[j, 2, 2] * Z + T_cw[j, 2, 3]
+                    if zc <= 1e-3:
+                        continue
+                    uu, vv = _pixel_of(xc, yc, zc, fx, fy, cx, cy, k1, k2, p1, p2, k3)
+                    if uu < 0 or vv < 0 or uu >= W or vv >= H:
+                        continue
+                    ej = ests[j, vv, uu]
+                    # No estimate there, or something in front of the point: frame j
+                    # cannot say where the point's surface is.
+                    if not (ej == ej) or ej < zc - tol_mm:
+                        continue
+                    n_obs += 1
+                    # Within the tolerance it puts the surface there too; farther, it sees
+                    # through the point (the point lies in its free space).
+                    if ej <= zc + tol_mm:
+                        n_sup += 1
+                support[i, v, u] = n_sup
+                observed[i, v, u] = n_obs
+
+
+def estimate_support(
+    candidates: np.ndarray,
+    estimates_mm: np.ndarray,
+    camera: Camera,
+    T_world_from_cams: np.ndarray,
+    used: np.ndarray,
+    tol_mm: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How many other frames put each candidate pixel's surface point where it does:
+    (support, observed), (N, H, W) int32, 0 where not a candidate.
+
+    candidates : (N, H, W) bool; estimates_mm : (N, H, W) float32 z-depth in each frame's
+    pose, NaN = none; T_world_from_cams : (N, 4, 4); used : (N,) bool (the others neither
+    vote nor count). A candidate's point is projected into every other used frame j; j
+    *observes* it when its estimate there is valid and not nearer than the point by more
+    than ``tol_mm`` (not occluded), and *supports* it when its estimate lies within
+    ``tol_mm`` of the point's depth; deeper, it contradicts it (sees through it).
+    """
+    c = np.ascontiguousarray(candidates, dtype=np.bool_)
+    N = len(c)
+    e = np.ascontiguousarray(estimates_mm, dtype=np.float32)
+    if e.shape != c.shape:
+        raise InvalidInputError("estimates_mm", f"shape {e.shape} differs from {c.shape}")
+    if c.shape[1:] != camera.shape:
+        raise InvalidInputError("candidates", f"shape {c.shape[1:]} is not {camera.shape}")
+    P = np.ascontiguousarray(T_world_from_cams, dtype=np.float64)
+    if P.shape != (N, 4, 4) or np.shape(used) != (N,):
+        raise InvalidInputError("T_world_from_cams", f"expected ({N}, 4, 4) poses and ({N},) used")
+    if not (np.isfinite(tol_mm) and tol_mm > 0):
+        raise InvalidInputError("tol_mm", f"must be > 0 mm, got {tol_mm}")
+    # A candidate needs a depth of its own.
+    c &= e > 0
+    support = np.zeros(c.shape, dtype=np.int32)
+    observed = np.zeros(c.shape, dtype=np.int32)
+    T_cw = np.ascontiguousarray(np.stack([invert_rigid(T) for T in P])) if N else P
+    _agreement_kernel(
+        c, e, np.ascontiguousarray(camera.rays_cam()), P, T_cw,
+        np.ascontiguousarray(used, dtype=np.bool_), camera.fx, camera.fy, camera.cx, camera.cy,
+        np.ascontiguousarray(camera.dist, dtype=np.float64), float(tol_mm), support, observed,
+    )  # fmt: skip
+    return support, observed
+
+
+def confirm_fill(
+    dets: list[Detection], model: TsdfModel, camera: Camera, cfg: UpdateConfig
+) -> list[Detection]:
+    """The step's detections with ``fill`` set: the unchanged pixels whose estimate may fill
+    the voxels ``model`` (M_t) never observed, confirmed by other frames.
+
+    A pixel fills when its estimate has a never-observed voxel within two voxels
+    (:func:`near_unobserved`), is not on a silhouette (:func:`depth_edges`, a
+    jump of the truncation distance), and at least ``cfg.change.min_views`` other frames,
+    and at least ``cfg.change.min_agreement`` of those that observe its point, put the
+    surface within the truncation distance of it (:func:`estimate_support`): what the
+    TSDF would average into one surface. A whole-CT model observed every voxel: nothing
+    is a candidate and nothing runs.
+    """
+    used = np.array([d.used for d in dets], dtype=bool)
+    shape = camera.shape
+    cands = np.zeros((len(dets), *shape), dtype=bool)
+    for i, d in enumerate(dets):
+        if d.used:
+            # A used detection has its maps (chisel.detect.detect).
+            m_raw, mask = cast(np.ndarray, d.m_raw), cast(np.ndarray, d.mask)
+            cands[i] = (
+                ~mask
+                & ~depth_edges(m_raw, model.trunc_mm)
+                & near_unobserved(model, camera, cast(np.ndarray, d.T_world_from_cam), m_raw)
+            )
+    if used.sum() < 2 or not cands.any():
+        return list(dets)
+    nan = np.full(shape, np.nan, np.float32)
+    ests = np.stack([cast(np.ndarray, d.m_raw) if d.used else nan for d in dets])
+    poses = np.stack([cast(np.ndarray, d.T_world_from_cam) if d.used else np.eye(4) for d in dets])
+    support, observed = estimate_support(cands, ests, camera, poses, used, model.trunc_mm)
+    views, agreement = cfg.change.min_views, cfg.change.min_agreement
+    keep = cands & (support >= max(views, 1)) & (support >= agreement * observed)
+    return [replace(d, fill=k) if d.used else d for d, k in zip(dets, keep, strict=True)]
