@@ -26,7 +26,7 @@ import numpy as np
 import trimesh
 
 from chisel.core.geometry import check_rigid, make_transform
-from chisel.core.mitsuba_variant import load_mitsuba
+from chisel.core.mitsuba_variant import deterministic_build, load_mitsuba
 from chisel.core.raycast import jit_z_depth, unit_rays
 from sim.appearance import TextureVolume
 from sim.config import SimConfig
@@ -174,7 +174,8 @@ class MeshRenderer:
 
         spp = int(cfg.imaging.spp)
         scene = self._scene_dict(spp)
-        self.scene = mi.load_dict(scene)
+        with deterministic_build():
+            self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         # Ground-truth tissue depth ignores instruments: with tools it comes from a
         # geometry-only scene of the tissue alone (the tool-free render's depth exactly).
@@ -182,7 +183,8 @@ class MeshRenderer:
         self._tool_state: tuple[int, bytes] | None = None
         if self._tool_meshes:
             tissue_only = self._mi_mesh("tissue", mesh, mi.Properties(), with_normals=False)
-            self._depth_scene = mi.load_dict({"type": "scene", "tissue": tissue_only})
+            with deterministic_build():
+                self._depth_scene = mi.load_dict({"type": "scene", "tissue": tissue_only})
             self._tool_ptrs = [mi.ShapePtr(t) for t in self._tool_meshes]
             self.place_tool(-1, np.eye(4))
         self._T_cam_from_light = make_transform(
@@ -269,9 +271,10 @@ class MeshRenderer:
             np.asarray(mesh.vertices, dtype=np.float32).ravel()
         )
         mp["faces"] = np.ascontiguousarray(np.asarray(mesh.faces, dtype=np.uint32).ravel())
-        mp.update()
-        if with_normals:
-            m.recompute_vertex_normals()
+        with deterministic_build():  # normals are summed over faces, in parallel otherwise
+            mp.update()
+            if with_normals:
+                m.recompute_vertex_normals()
         return m
 
     def _buffer(self, values: np.ndarray) -> Any:
@@ -301,7 +304,8 @@ class MeshRenderer:
             self.params[f"tool_{k}.vertex_positions"] = self._buffer(world)
             if not self.depth_only:
                 self.params[f"tool_{k}.vertex_normals"] = self._buffer(n_world)
-        self.params.update()
+        with deterministic_build():  # moved vertices rebuild the scene's structure
+            self.params.update()
         self._tool_state = state
 
     def _visible_z_and_tool(self, T: np.ndarray) -> tuple[Any, Any]:

@@ -295,3 +295,54 @@ def test_an_episode_that_cannot_be_placed_whole_is_split_in_two(toy, monkeypatch
             replace_in(cfg, **{"tools.episode_frames": [3, 10], "tools.max_tries": 2}).tools,
             seed=5,
         )
+
+
+def test_scenes_are_built_on_one_thread_and_render_the_same_bytes(toy, monkeypatch) -> None:
+    """Built on several threads, a scene's ray-tracing structure differs from build to
+    build and a ray through a shared edge may hit either triangle (frames 1 level apart at
+    a pixel or two between runs; docs/results.md, twenty-seventh session). Every build and
+    rebuild (the scene, the tissue-only scene, vertex normals, a tool moved) runs on one
+    drjit thread, and the thread count is restored after each, also after an error."""
+    import drjit as dr
+
+    from chisel.core.mitsuba_variant import deterministic_build, load_mitsuba
+
+    _, _, mesh, cfg, _, poses, tools, track = toy
+    mi, _ = load_mitsuba(cfg.variant)  # the renderer's variant, set before patching
+    tex = texture_volume(np.stack([mesh.bounds[0] - 1, mesh.bounds[1] + 1]), cfg.appearance, 0)
+    before = dr.thread_count()
+    with pytest.raises(RuntimeError), deterministic_build():
+        assert dr.thread_count() == 1
+        raise RuntimeError("a failed build")
+    assert dr.thread_count() == before
+    seen: dict[str, list[int]] = {"load_dict": [], "update": [], "normals": []}
+    load_dict, update = mi.load_dict, mi.SceneParameters.update
+    normals = mi.Mesh.recompute_vertex_normals
+
+    def record(name, fn):  # noqa: ANN001, ANN202
+        def wrapped(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            # Of the dicts loaded, scenes build a structure (BSDFs, sensors do not).
+            if name != "load_dict" or args[0].get("type") == "scene":
+                seen[name].append(dr.thread_count())
+            return fn(*args, **kwargs)
+
+        return wrapped
+
+    monkeypatch.setattr(mi, "load_dict", record("load_dict", load_dict))
+    monkeypatch.setattr(mi.Mesh, "recompute_vertex_normals", record("normals", normals))
+    a = MeshRenderer(mesh, cfg, tex, tools=tools)
+    assert seen["load_dict"] == [1, 1]  # the scene, the tissue-only scene
+    assert seen["normals"] and set(seen["normals"]) == {1}
+    monkeypatch.setattr(mi.SceneParameters, "update", record("update", update))
+    i = int(np.flatnonzero(track.kind >= 0)[0])
+    seen["update"].clear()
+    a.place_tool(int(track.kind[i]), track.T_world_from_tool[i])
+    assert seen["update"] == [1]
+    assert dr.thread_count() == before
+    b = MeshRenderer(mesh, cfg, tex, tools=tools)
+    tool = (int(track.kind[i]), track.T_world_from_tool[i])
+    fa = a.render(poses[i], index=i, seed=1, tool=tool)
+    fb = b.render(poses[i], index=i, seed=1, tool=tool)
+    assert fa.rgb.tobytes() == fb.rgb.tobytes()
+    assert fa.tool_mask is not None and fb.tool_mask is not None
+    assert fa.tool_mask.tobytes() == fb.tool_mask.tobytes()

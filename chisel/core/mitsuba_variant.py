@@ -12,6 +12,7 @@ drjit 1.5 with the system LLVM 15 aborts; LLVM 19 works. :func:`configure_llvm_e
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import glob
 import logging
@@ -20,6 +21,7 @@ import shutil
 import subprocess
 import sys
 import warnings
+from collections.abc import Iterator
 from types import ModuleType
 
 from chisel.core.errors import VariantError
@@ -177,3 +179,25 @@ def jit_mitsuba() -> ModuleType | None:
             return None
         mi.set_variant(current)
     return mi if current in ("cuda_ad_rgb", "llvm_ad_rgb") else None
+
+
+@contextlib.contextmanager
+def deterministic_build() -> Iterator[None]:
+    """Build or rebuild Mitsuba scenes (their ray-tracing acceleration structure) on one
+    drjit thread; the thread count is restored afterwards.
+
+    Built on several threads, the structure differs from build to build, and a ray through
+    the shared edge of two triangles can hit either: a phantom's frames rendered 1 level
+    apart at 1-2 pixels between runs, which a network fine-tuned on them turned into other
+    weights (docs/results.md, twenty-seventh session). Built on one thread the same scene
+    gives the same bytes in every process; a phantom's scene builds as quickly (0.1-0.4 s
+    either way, measured).
+    """
+    import drjit as dr  # noqa: PLC0415 - only where Mitsuba is in use
+
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(threads)

@@ -23,6 +23,7 @@ import numpy as np
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, check_rigid
+from chisel.core.mitsuba_variant import deterministic_build
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -215,7 +216,8 @@ class MeshRaycaster:
             params["vertex_positions"] = np.ascontiguousarray(v.ravel())
             params["faces"] = np.ascontiguousarray(f.ravel())
             params.update()
-            self.scene = mi.load_dict({"type": "scene", "surface": mesh})
+            with deterministic_build():
+                self.scene = mi.load_dict({"type": "scene", "surface": mesh})
         else:
             self.scene = SurfaceQueries(v, f).scene
         self._rays_key: Camera | None = None
