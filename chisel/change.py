@@ -232,6 +232,28 @@ def _pixel_of(X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3):
     return int(np.floor(fx * xd + cx + 0.5)), int(np.floor(fy * yd + cy + 0.5))
 
 
+@numba.njit(cache=True, inline="always")
+def _apply(T, n, x, y, z):
+    """Point (x, y, z) through the rigid transform ``T[n]`` of a stack (N, 4, 4)."""
+    return (
+        T[n, 0, 0] * x + T[n, 0, 1] * y + T[n, 0, 2] * z + T[n, 0, 3],
+        T[n, 1, 0] * x + T[n, 1, 1] * y + T[n, 1, 2] * z + T[n, 1, 3],
+        T[n, 2, 0] * x + T[n, 2, 1] * y + T[n, 2, 2] * z + T[n, 2, 3],
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _project_into(T_cw, j, X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3, W, H):
+    """World point -> (u, v, z-depth) in frame ``j``; u = -1 outside its image or behind it."""
+    xc, yc, zc = _apply(T_cw, j, X, Y, Z)
+    if zc <= 1e-3:
+        return -1, -1, zc
+    uu, vv = _pixel_of(xc, yc, zc, fx, fy, cx, cy, k1, k2, p1, p2, k3)
+    if uu < 0 or vv < 0 or uu >= W or vv >= H:
+        return -1, -1, zc
+    return uu, vv, zc
+
+
 @numba.njit(cache=True)
 def _warp_kernel(depth, rays, D, fx, fy, cx, cy, dist, out):
     H, W = depth.shape
@@ -375,21 +397,16 @@ def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, c
                 x = rays[v, u, 0] * d
                 y = rays[v, u, 1] * d
                 z = rays[v, u, 2] * d
-                X = T_wc[i, 0, 0] * x + T_wc[i, 0, 1] * y + T_wc[i, 0, 2] * z + T_wc[i, 0, 3]
-                Y = T_wc[i, 1, 0] * x + T_wc[i, 1, 1] * y + T_wc[i, 1, 2] * z + T_wc[i, 1, 3]
-                Z = T_wc[i, 2, 0] * x + T_wc[i, 2, 1] * y + T_wc[i, 2, 2] * z + T_wc[i, 2, 3]
+                X, Y, Z = _apply(T_wc, i, x, y, z)
                 n_sup = 0
                 n_obs = 0
                 for j in range(N):
                     if j == i or not used[j]:
                         continue
-                    xc = T_cw[j, 0, 0] * X + T_cw[j, 0, 1] * Y + T_cw[j, 0, 2] * Z + T_cw[j, 0, 3]
-                    yc = T_cw[j, 1, 0] * X + T_cw[j, 1, 1] * Y + T_cw[j, 1, 2] * Z + T_cw[j, 1, 3]
-                    zc = T_cw[j, 2, 0] * X + T_cw[j, 2, 1] * Y + T_cw[j, 2, 2] * Z + T_cw[j, 2, 3]
-                    if zc <= 1e-3:
-                        continue
-                    uu, vv = _pixel_of(xc, yc, zc, fx, fy, cx, cy, k1, k2, p1, p2, k3)
-                    if uu < 0 or vv < 0 or uu >= W or vv >= H:
+                    uu, vv, zc = _project_into(
+                        T_cw, j, X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3, W, H
+                    )
+                    if uu < 0:
                         continue
                     rj = renders[j, vv, uu]
                     # Frame j sees the same old surface point (not occluded, not beside it)...

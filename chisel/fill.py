@@ -20,7 +20,7 @@ import cv2
 import numba
 import numpy as np
 
-from chisel.change import _pixel_of
+from chisel.change import _apply, _project_into
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
 from chisel.detect import Detection
@@ -118,21 +118,16 @@ def _agreement_kernel(cands, ests, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist,
                 x = rays[v, u, 0] * e
                 y = rays[v, u, 1] * e
                 z = rays[v, u, 2] * e
-                X = T_wc[i, 0, 0] * x + T_wc[i, 0, 1] * y + T_wc[i, 0, 2] * z + T_wc[i, 0, 3]
-                Y = T_wc[i, 1, 0] * x + T_wc[i, 1, 1] * y + T_wc[i, 1, 2] * z + T_wc[i, 1, 3]
-                Z = T_wc[i, 2, 0] * x + T_wc[i, 2, 1] * y + T_wc[i, 2, 2] * z + T_wc[i, 2, 3]
+                X, Y, Z = _apply(T_wc, i, x, y, z)
                 n_sup = 0
                 n_obs = 0
                 for j in range(N):
                     if j == i or not used[j]:
                         continue
-                    xc = T_cw[j, 0, 0] * X + T_cw[j, 0, 1] * Y + T_cw[j, 0, 2] * Z + T_cw[j, 0, 3]
-                    yc = T_cw[j, 1, 0] * X + T_cw[j, 1, 1] * Y + T_cw[j, 1, 2] * Z + T_cw[j, 1, 3]
-                    zc = T_cw[j, 2, 0] * X + T_cw[j, 2, 1] * Y + T_cw[j, 2, 2] * Z + T_cw[j, 2, 3]
-                    if zc <= 1e-3:
-                        continue
-                    uu, vv = _pixel_of(xc, yc, zc, fx, fy, cx, cy, k1, k2, p1, p2, k3)
-                    if uu < 0 or vv < 0 or uu >= W or vv >= H:
+                    uu, vv, zc = _project_into(
+                        T_cw, j, X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3, W, H
+                    )
+                    if uu < 0:
                         continue
                     ej = ests[j, vv, uu]
                     # No estimate there, or something in front of the point: frame j
