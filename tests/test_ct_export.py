@@ -4,6 +4,7 @@ partial-volume ramp at the new boundary."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import nibabel as nib
@@ -199,3 +200,32 @@ def test_preop_model_free_space_is_not_removed(tmp_path: Path):
     out = tmp_path / "out.nii.gz"
     assert main([*argv, "--preop-model", str(tmp_path / "p.npz"), "--out", str(out)]) == 0
     assert np.array_equal(read_ct_volume(out).data == 0, box)
+
+
+def test_tissue_an_update_fused_beyond_the_ct_is_no_sign_of_another_ct() -> None:
+    """An update may fuse tissue past the CT's box (the endoscope sees beyond it). Given
+    the preoperative model, the CT must cover that model's tissue; the updated model's
+    extra tissue outside does not refuse the export, and nothing outside is removed."""
+    ct = CtVolume(np.ones(CT_SHAPE, np.uint8), T_CT, "label", source="ct.nii.gz")
+    box = _model(voxel_mm=0.5)
+    pad = ((0, 16), (0, 0), (0, 0))  # 8 mm more along +x, where the CT ends at 20.5 mm
+
+    def padded(tsdf: float, weight: float) -> TsdfModel:
+        return replace(
+            box,
+            tsdf=np.pad(box.tsdf, pad, constant_values=tsdf),
+            weight=np.pad(box.weight, pad, constant_values=weight),
+        )
+
+    preop = padded(1.0, 0.0)  # the sweep never looked there
+    updated = padded(-1.0, 1.0)  # the update fused tissue there
+    with pytest.raises(InvalidInputError, match="does not cover the model's grid"):
+        updated_ct(ct, updated, model_source="updated.npz")
+    result = updated_ct(ct, updated, model_source="updated.npz", preop=preop)
+    # The pad lies beyond the CT: the export is that of the model without it.
+    alone = updated_ct(ct, preop, model_source="preop.npz", preop=preop)
+    assert np.array_equal(result.removed, alone.removed)
+    assert np.array_equal(result.volume.data, alone.volume.data)
+    # A preoperative model whose own tissue the CT does not cover is still refused.
+    with pytest.raises(InvalidInputError, match="preoperative model's observed tissue"):
+        updated_ct(ct, updated, model_source="updated.npz", preop=updated)
