@@ -197,8 +197,8 @@ def confirm_fill(
     jump of the truncation distance), and at least ``cfg.change.min_views`` other frames,
     and at least ``cfg.change.min_agreement`` of those that observe its point, put the
     surface within the truncation distance of it (:func:`estimate_support`): what the
-    TSDF would average into one surface. A whole-CT model observed every voxel: nothing
-    is a candidate and nothing runs.
+    TSDF would average into one surface. The batch step runs it on sweep-built models
+    only (``UpdateConfig.fill_confirmed``).
     """
     used = np.array([d.used for d in dets], dtype=bool)
     shape = camera.shape

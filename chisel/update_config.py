@@ -91,7 +91,8 @@ class UpdateConfig:
     sweep-only row (seeds 0-4 and held-out 8-12) it cut the missing fraction from 0.23 and
     0.19 to 0.04 and raised the F-score at 1 mm from 0.50 to 0.53 and 0.55, with the
     paper's metric over the larger surface 1.017x and 0.943x (geometric mean per step).
-    A whole-CT model has observed every voxel: it is left bit-identical. False: the paper."""
+    A whole-CT model shows a surface in front of its never-observed voxels (outside the
+    CT): it was left bit-identical (seed 0, checked). False: the paper."""
     fill_confirmed: bool = True
     """With ``fill_unseen``, in batch mode: also fuse the estimate into never-observed voxels
     next to a surface the model shows (within the truncation distance of the estimate),
@@ -100,8 +101,11 @@ class UpdateConfig:
     (:func:`chisel.fill.confirm_fill`). One view is all there is of a hole the model
     shows nothing in; next to a surface, one frame's wrong depth would write into every
     unobserved voxel it reaches. The streaming updater has no other frames: unseen only.
-    On the sweep-only row it cut the missing fraction from 0.044 to 0.027 (seeds 0-4) and
-    0.045 to 0.026 (held-out 8-12), the paper's metric 1.006x and 0.983x (docs/updater.md)."""
+    Sweep-built models only: a whole-CT model's never-observed voxels lie outside the
+    CT, and filling them made the paper's row worse on seed 0 (0.534 -> 0.588 mm at step
+    2, 0.512 -> 0.569 at step 5). On the sweep-only row it cut the missing fraction from
+    0.044 to 0.027 (seeds 0-4) and 0.045 to 0.026 (held-out 8-12), the paper's metric
+    1.006x and 0.983x (docs/updater.md)."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
     points only while the hand-eye estimate has no prior (lost track at the start), and

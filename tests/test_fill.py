@@ -183,6 +183,11 @@ def test_confirmed_fill_adds_the_lamella_the_sweep_never_saw(scene: dict) -> Non
     v = extract_mesh(confirmed).vertices
     _, dist, _ = trimesh.proximity.closest_point(mesh, v)
     assert len(v) > 1000 and dist.max() < VOXEL_MM
+    # A whole-CT model's never-observed voxels lie outside the CT: left to the unseen fill.
+    as_ct = replace(model, build="ct")
+    ct_confirmed, _ = update_step(as_ct, CAM, fr, GroundTruthDepth())
+    assert ct_confirmed.tsdf.tobytes() == unseen_only.tsdf.tobytes()
+    assert ct_confirmed.weight.tobytes() == unseen_only.weight.tobytes()
 
 
 def test_garbage_depth_is_not_confirmed(scene: dict) -> None:
