@@ -202,7 +202,7 @@ def update_step(
         dets.append(det)
     if cfg.change.min_views > 0:
         dets = confirm_changes(dets, camera, cfg.change)
-    if step_cfg.fill_unseen and step_cfg.fill_confirmed and model.build == "sweep":
+    if step_cfg.fill_unseen and step_cfg.fill_confirmed:
         dets = confirm_fill(dets, model, camera, step_cfg)
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)

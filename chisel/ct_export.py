@@ -104,10 +104,11 @@ def check_coverage(
     outside = np.any((idx < -0.5 - tol) | (idx > np.array(ct.shape) - 0.5 + tol), axis=1)
     frac = float(outside.mean())
     if frac > OUTSIDE_TISSUE_FRACTION:
+        whose = "model's" if tissue_model is None else "preoperative model's"
         raise InvalidInputError(
             ct.source or "CT",
-            f"the CT does not cover the model's grid: {100 * frac:.1f} % of the "
-            f"{'model' if tissue_model is None else 'preoperative model'}'s observed tissue ({int(outside.sum())} voxels) lies outside the CT's voxels "
+            f"the CT does not cover the model's grid: {100 * frac:.1f} % of the {whose} "
+            f"observed tissue ({int(outside.sum())} voxels) lies outside the CT's voxels "
             f"(CT box {np.round(ct_lo, 1).tolist()}..{np.round(ct_hi, 1).tolist()} mm)",
         )
 

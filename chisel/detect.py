@@ -309,6 +309,19 @@ def register_frame(
     return warp_depth(s * E, camera, T_tracked_from_registered), s, res
 
 
+def stack_maps(dets: list[Detection], name: str, shape: tuple[int, int]) -> np.ndarray:
+    """(N, H, W) float32 map ``name`` of a step's detections, NaN for frames not used."""
+    return np.stack(
+        [getattr(d, name) if d.used else np.full(shape, np.nan, np.float32) for d in dets]
+    )
+
+
+def stack_poses(dets: list[Detection]) -> np.ndarray:
+    """(N, 4, 4) poses a step's detections are expressed in (identity for frames not used)."""
+    # A used detection has its pose (detect).
+    return np.stack([cast(np.ndarray, d.T_world_from_cam) if d.used else np.eye(4) for d in dets])
+
+
 def confirm_changes(dets: list[Detection], camera: Camera, cfg: ChangeConfig) -> list[Detection]:
     """Multi-view check of a step's change masks (batch mode): the detections with their
     masks confirmed.
@@ -324,17 +337,11 @@ def confirm_changes(dets: list[Detection], camera: Camera, cfg: ChangeConfig) ->
     if used.sum() < 2:
         return list(dets)
     shape = camera.shape
-
-    def stack(name: str, fill: float) -> np.ndarray:
-        return np.stack(
-            [getattr(d, name) if d.used else np.full(shape, fill, np.float32) for d in dets]
-        )
-
-    # A used detection has its mask and pose.
+    # A used detection has its mask.
     masks = np.stack([cast(np.ndarray, d.mask) if d.used else np.zeros(shape, bool) for d in dets])
-    poses = np.stack([cast(np.ndarray, d.T_world_from_cam) if d.used else np.eye(4) for d in dets])
+    renders, estimates = stack_maps(dets, "m_t", shape), stack_maps(dets, "m_raw", shape)
     support, observed = multiview_support(
-        masks, stack("m_t", np.nan), stack("m_raw", np.nan), camera, poses, used,
+        masks, renders, estimates, camera, stack_poses(dets), used,
         np.array([d.threshold_mm if d.used else np.inf for d in dets]), cfg.visible_mm,
         cfg.contradict_fraction,
     )  # fmt: skip

@@ -23,7 +23,7 @@ import numpy as np
 from chisel.change import _apply, _project_into
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
-from chisel.detect import Detection
+from chisel.detect import Detection, stack_maps, stack_poses
 from chisel.model import TsdfModel
 from chisel.update_config import UpdateConfig
 
@@ -45,9 +45,7 @@ def _near_unobserved_kernel(depth, rays, T_vc, weight, band, step, out):  # fmt:
                 x = rays[v, u, 0] * z
                 y = rays[v, u, 1] * z
                 zz = rays[v, u, 2] * z
-                a = T_vc[0, 0] * x + T_vc[0, 1] * y + T_vc[0, 2] * zz + T_vc[0, 3]
-                b = T_vc[1, 0] * x + T_vc[1, 1] * y + T_vc[1, 2] * zz + T_vc[1, 3]
-                c = T_vc[2, 0] * x + T_vc[2, 1] * y + T_vc[2, 2] * zz + T_vc[2, 3]
+                a, b, c = _apply(T_vc, 0, x, y, zz)
                 ia = int(np.floor(a + 0.5))
                 ib = int(np.floor(b + 0.5))
                 ic = int(np.floor(c + 0.5))
@@ -74,6 +72,7 @@ def near_unobserved(
         raise InvalidInputError("depth_mm", f"shape {d.shape} is not the camera's {camera.shape}")
     # Camera mm -> voxel index (T_world_from_voxel scales by the voxel size: not rigid).
     T_vc = np.linalg.inv(model.T_world_from_voxel) @ np.asarray(T_world_from_cam, np.float64)
+    T_vc = np.ascontiguousarray(T_vc[None])  # a stack of one, for the shared transform
     out = np.zeros(camera.shape, dtype=np.bool_)
     _near_unobserved_kernel(
         np.nan_to_num(d, nan=0.0), np.ascontiguousarray(camera.rays_cam()), T_vc,
@@ -173,8 +172,7 @@ def estimate_support(
         raise InvalidInputError("T_world_from_cams", f"expected ({N}, 4, 4) poses and ({N},) used")
     if not (np.isfinite(tol_mm) and tol_mm > 0):
         raise InvalidInputError("tol_mm", f"must be > 0 mm, got {tol_mm}")
-    # A candidate needs a depth of its own.
-    c &= e > 0
+    c = c & (e > 0)  # a candidate needs a depth of its own (the caller's array is kept)
     support = np.zeros(c.shape, dtype=np.int32)
     observed = np.zeros(c.shape, dtype=np.int32)
     T_cw = np.ascontiguousarray(np.stack([invert_rigid(T) for T in P])) if N else P
@@ -197,9 +195,12 @@ def confirm_fill(
     jump of the truncation distance), and at least ``cfg.change.min_views`` other frames,
     and at least ``cfg.change.min_agreement`` of those that observe its point, put the
     surface within the truncation distance of it (:func:`estimate_support`): what the
-    TSDF would average into one surface. The batch step runs it on sweep-built models
-    only (``UpdateConfig.fill_confirmed``).
+    TSDF would average into one surface. Sweep-built models only: a whole-CT model's
+    never-observed voxels lie outside the CT (``UpdateConfig.fill_confirmed``); its
+    detections are returned as they are.
     """
+    if model.build != "sweep":
+        return list(dets)
     used = np.array([d.used for d in dets], dtype=bool)
     shape = camera.shape
     cands = np.zeros((len(dets), *shape), dtype=bool)
@@ -214,9 +215,7 @@ def confirm_fill(
             )
     if used.sum() < 2 or not cands.any():
         return list(dets)
-    nan = np.full(shape, np.nan, np.float32)
-    ests = np.stack([cast(np.ndarray, d.m_raw) if d.used else nan for d in dets])
-    poses = np.stack([cast(np.ndarray, d.T_world_from_cam) if d.used else np.eye(4) for d in dets])
+    ests, poses = stack_maps(dets, "m_raw", shape), stack_poses(dets)
     support, observed = estimate_support(cands, ests, camera, poses, used, model.trunc_mm)
     views, agreement = cfg.change.min_views, cfg.change.min_agreement
     keep = cands & (support >= max(views, 1)) & (support >= agreement * observed)
