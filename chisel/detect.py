@@ -90,8 +90,9 @@ class Detection:
     """(4, 4) camera-side correction this frame's registration found and that the
     tracker can need (None = none): what the hand-eye estimate learns from."""
     fill: np.ndarray | None = field(default=None, repr=False)
-    """(H, W) bool unchanged pixels whose estimate other frames confirmed, fused into the
-    voxels the model never observed (:func:`chisel.fill.confirm_fill`; batch); None = none."""
+    """(H, W) bool pixels whose estimate other frames confirmed, fused into the voxels the
+    model never observed where carving fused nothing (:func:`chisel.fill.confirm_fill`;
+    batch); None = none."""
 
 
 class HandEye:

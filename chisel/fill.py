@@ -8,7 +8,10 @@ seen through its rim, tissue behind a lamella's edge), and there a single view's
 is not enough: a frame of garbage depth would write surfaces into every unobserved voxel
 it reaches. ``UpdateConfig.fill_confirmed`` lets a pixel fill there only when other
 frames of the step put the same surface point where it does, as the change mask's
-multi-view check does for removal (:func:`chisel.change.multiview_support`).
+multi-view check does for removal (:func:`chisel.change.multiview_support`). A changed
+pixel is held to the same rule: deletion first keeps the surface the model holds behind
+the removed layer and fuses nothing, but in a sweep-built model the free space behind a
+lamella often ends in voxels no frame observed, and there the estimate is all there is.
 """
 
 from __future__ import annotations
@@ -187,10 +190,10 @@ def estimate_support(
 def confirm_fill(
     dets: list[Detection], model: TsdfModel, camera: Camera, cfg: UpdateConfig
 ) -> list[Detection]:
-    """The step's detections with ``fill`` set: the unchanged pixels whose estimate may fill
-    the voxels ``model`` (M_t) never observed, confirmed by other frames.
+    """The step's detections with ``fill`` set: the pixels whose estimate may fill the
+    voxels ``model`` (M_t) never observed, confirmed by other frames.
 
-    A pixel fills when its estimate has a never-observed voxel within two voxels
+    A pixel, changed or not, fills when its estimate has a never-observed voxel within two voxels
     (:func:`near_unobserved`), is not on a silhouette (:func:`depth_edges`, a
     jump of the truncation distance), and at least ``cfg.change.min_views`` other frames,
     and at least ``cfg.change.min_agreement`` of those that observe its point, put the
@@ -207,11 +210,9 @@ def confirm_fill(
     for i, d in enumerate(dets):
         if d.used:
             # A used detection has its maps (chisel.detect.detect).
-            m_raw, mask = cast(np.ndarray, d.m_raw), cast(np.ndarray, d.mask)
-            cands[i] = (
-                ~mask
-                & ~depth_edges(m_raw, model.trunc_mm)
-                & near_unobserved(model, camera, cast(np.ndarray, d.T_world_from_cam), m_raw)
+            m_raw = cast(np.ndarray, d.m_raw)
+            cands[i] = ~depth_edges(m_raw, model.trunc_mm) & near_unobserved(
+                model, camera, cast(np.ndarray, d.T_world_from_cam), m_raw
             )
     if used.sum() < 2 or not cands.any():
         return list(dets)

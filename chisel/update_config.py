@@ -96,16 +96,16 @@ class UpdateConfig:
     fill_confirmed: bool = True
     """With ``fill_unseen``, in batch mode: also fuse the estimate into never-observed voxels
     next to a surface the model shows (within the truncation distance of the estimate),
-    where at least ``change.min_views`` other frames, and ``change.min_agreement`` of
-    those that see the point, put the surface within the truncation distance of it
-    (:func:`chisel.fill.confirm_fill`). One view is all there is of a hole the model
-    shows nothing in; next to a surface, one frame's wrong depth would write into every
-    unobserved voxel it reaches. The streaming updater has no other frames: unseen only.
-    Sweep-built models only: a whole-CT model's never-observed voxels lie outside the
-    CT, and filling them made the paper's row worse on seed 0 (0.534 -> 0.588 mm at step
-    2, 0.512 -> 0.569 at step 5). On the sweep-only row it cut the missing fraction from
-    0.044 to 0.027 (seeds 0-4) and 0.045 to 0.026 (held-out 8-12), the paper's metric
-    1.006x and 0.983x (docs/updater.md)."""
+    and behind what carving deleted, where at least ``change.min_views`` other frames,
+    and ``change.min_agreement`` of those that see the point, put the surface within the
+    truncation distance of it (:func:`chisel.fill.confirm_fill`). One view is all there
+    is of a hole the model shows nothing in; next to a surface, one frame's wrong depth
+    would write into every unobserved voxel it reaches. The streaming updater has no
+    other frames: unseen only. Sweep-built models only: a whole-CT model's
+    never-observed voxels lie outside the CT, and filling them made the paper's row worse
+    on seed 0 (0.534 -> 0.588 mm at step 2, 0.512 -> 0.569 at step 5). On the sweep-only
+    row the missing fraction fell from 0.044 to 0.015 (seeds 0-4) and from 0.045 to
+    0.018 (held-out 8-12) (docs/updater.md)."""
     frame_ransac: Literal["always", "until_prior"] = "until_prior"
     """When a frame's ICP fails: "until_prior" = retry it with RANSAC + ICP on its own
     points only while the hand-eye estimate has no prior (lost track at the start), and

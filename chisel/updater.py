@@ -100,9 +100,9 @@ def fuse(
     reliable : (H, W) bool, the pixels where such an estimate declared itself reliable
     (:func:`chisel.depth_source.reliable_pixels`), carved as precise unless the frame's
     noise raised its threshold. With ``cfg.fill_unseen`` the estimate is also fused where
-    the model shows no surface, and at the detection's confirmed ``fill`` pixels, into
-    voxels it never observed. A frame not used (its scale could not be solved) only gets
-    its report.
+    the model shows no surface, and at the detection's confirmed ``fill`` pixels that
+    carving did not fuse, into voxels it never observed. A frame not used (its scale could
+    not be solved) only gets its report.
     """
     if not det.used:
         return FrameReport(
@@ -141,8 +141,8 @@ def fuse(
         # of observed tissue whose faces were dropped at the edge of the unobserved).
         with np.errstate(invalid="ignore"):
             unseen = ~np.isfinite(det.m_t) & (det.m_prime > 0) & ~fuse_mask
-        if det.fill is not None:  # next to a shown surface, where other views confirm it
-            unseen |= det.fill & ~det.mask
+        if det.fill is not None:  # where other views confirm the estimate's surface
+            unseen |= det.fill & ~fuse_mask
         if unseen.any():
             voxels_updated += integrate(
                 model, camera, det.T_world_from_cam, det.m_prime, pixel_weight=unseen, rgb=rgb,

@@ -207,3 +207,73 @@ def test_garbage_depth_is_not_confirmed(scene: dict) -> None:
     c, _ = update_step(model, CAM, fr, source, replace(lax, fill_confirmed=False))
     d, _ = update_step(model, CAM, fr, source, lax)
     assert _written(c, d).sum() > 100
+
+
+class _EstimateOf:
+    """The frame's own exact depth declared a learnt estimate: carved as a noisy frame
+    (deletion votes, one thin layer), as the network's depth is."""
+
+    is_metric = True
+    is_estimate = True
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        assert frame.depth_mm is not None
+        return frame.depth_mm
+
+
+SHADOW_LO, SHADOW_HI = np.array([-3.5, -3.5, 9.0]), np.array([3.5, 3.5, 14.0])
+"""Behind the plate (z 4..6) and its free gap: the air in front of the back wall (z = 10)
+and the wall itself."""
+
+
+def test_confirmed_fill_closes_what_carving_opens() -> None:
+    """The sweep saw the plate's front and never what lies behind it; the step removes the
+    plate. The sweep also saw the free gap right behind the plate (obliquely), not the
+    wall past it. Noisy carving deletes the plate, and since free space the model holds
+    follows it, it fuses nothing there (deletion first: the surface behind is the
+    model's own); but that free space ends in voxels never observed. The confirmed fill
+    then fuses the changed pixels' estimate into those (the change mask's multi-view
+    check is their confirmation); without it the model shows a hole where the plate
+    was. The wall it adds lies within a voxel of the truth, and nowhere else does the
+    model gain a surface off the scene."""
+    chamber = _chamber()
+    plate = trimesh.creation.box(extents=PLATE_HI - PLATE_LO)
+    plate.apply_translation((PLATE_HI + PLATE_LO) / 2.0)
+    preop = trimesh.util.concatenate([chamber, plate])
+    model = build_preop_model(
+        preop, CAM, _poses(16, seed=1, spread_mm=5.0), BuildConfig(VOXEL_MM, 2.0)
+    )
+    centres = transform_points(
+        model.T_world_from_voxel, np.argwhere(np.ones(model.shape, bool)).astype(float)
+    ).reshape(*model.shape, 3)
+    shadow = np.all((centres > SHADOW_LO) & (centres < SHADOW_HI), axis=-1)
+    model.tsdf[shadow], model.weight[shadow] = 1.0, 0.0
+    # The gap right behind the plate was seen free (obliquely); what lies past it never.
+    gap = np.all((centres > [-3.5, -3.5, 6.1]) & (centres < [3.5, 3.5, 9.0]), axis=-1)
+    model.tsdf[gap], model.weight[gap] = 1.0, 1.0
+    rc = MeshRaycaster.from_trimesh(chamber)
+    frames = [
+        Frame(index=i, T_world_from_cam=T, depth_mm=rc.render_depth(CAM, T))
+        for i, T in enumerate(_poses(16, seed=2, spread_mm=5.0))
+    ]
+    opened, _ = update_step(model, CAM, frames, _EstimateOf(), UpdateConfig(fill_confirmed=False))
+    closed, _ = update_step(model, CAM, frames, _EstimateOf(), UpdateConfig())
+
+    def wall_vertices(m: TsdfModel) -> np.ndarray:
+        v = extract_mesh(m).vertices
+        inside = np.all(
+            (v > SHADOW_LO + [1.0, 1.0, 0.0]) & (v < SHADOW_HI - [1.0, 1.0, 0.0]), axis=1
+        )
+        return v[inside]
+
+    assert _plate_vertices(opened) < 20 and _plate_vertices(closed) < 20  # the plate is gone
+    assert len(wall_vertices(opened)) < 20  # a hole where the plate was
+    wall = wall_vertices(closed)
+    assert len(wall) > 100
+    _, dist, _ = trimesh.proximity.closest_point(chamber, wall)
+    assert dist.max() < VOXEL_MM
+    assert np.abs(wall[:, 2] - 10.0).max() < VOXEL_MM
+    # No surface anywhere else: the whole model lies on the scene as the hole's did.
+    _, d_open, _ = trimesh.proximity.closest_point(chamber, extract_mesh(opened).vertices)
+    _, d_closed, _ = trimesh.proximity.closest_point(chamber, extract_mesh(closed).vertices)
+    assert d_closed.max() <= max(d_open.max(), 0.5 * VOXEL_MM)
