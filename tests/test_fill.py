@@ -56,27 +56,39 @@ def _poses(n: int, seed: int, spread_mm: float) -> np.ndarray:
 PLATE_LO, PLATE_HI = np.array([-3.0, -3.0, 4.0]), np.array([3.0, 3.0, 6.0])
 
 
-@pytest.fixture(scope="module")
-def scene() -> dict:
-    chamber = _chamber()
+def _plate() -> trimesh.Trimesh:
     plate = trimesh.creation.box(extents=PLATE_HI - PLATE_LO)
     plate.apply_translation((PLATE_HI + PLATE_LO) / 2.0)
-    mesh = trimesh.util.concatenate([chamber, plate])
+    return plate
+
+
+def _sweep_model(swept: trimesh.Trimesh) -> tuple[TsdfModel, np.ndarray]:
+    """The paper's preoperative model of ``swept`` and its voxel centres (X, Y, Z, 3), mm."""
     model = build_preop_model(
-        chamber, CAM, _poses(16, seed=1, spread_mm=5.0), BuildConfig(VOXEL_MM, 2.0)
+        swept, CAM, _poses(16, seed=1, spread_mm=5.0), BuildConfig(VOXEL_MM, 2.0)
     )
     centres = transform_points(
         model.T_world_from_voxel, np.argwhere(np.ones(model.shape, bool)).astype(float)
     ).reshape(*model.shape, 3)
+    return model, centres
+
+
+def _step_frames(mesh: trimesh.Trimesh) -> list[Frame]:
+    rc = MeshRaycaster.from_trimesh(mesh)
+    return [
+        Frame(index=i, T_world_from_cam=T, depth_mm=rc.render_depth(CAM, T))
+        for i, T in enumerate(_poses(16, seed=2, spread_mm=5.0))
+    ]
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    chamber, plate = _chamber(), _plate()
+    mesh = trimesh.util.concatenate([chamber, plate])
+    model, centres = _sweep_model(chamber)
     box = np.all((centres > PLATE_LO - VOXEL_MM) & (centres < PLATE_HI + VOXEL_MM), axis=-1)
     model.tsdf[box], model.weight[box] = 1.0, 0.0
-    rc = MeshRaycaster.from_trimesh(mesh)
-    true = _poses(16, seed=2, spread_mm=5.0)
-    frames = [
-        Frame(index=i, T_world_from_cam=T, depth_mm=rc.render_depth(CAM, T))
-        for i, T in enumerate(true)
-    ]
-    return {"mesh": mesh, "model": model, "frames": frames, "plate": plate}
+    return {"mesh": mesh, "model": model, "frames": _step_frames(mesh), "plate": plate}
 
 
 def _written(before: TsdfModel, after: TsdfModel) -> np.ndarray:
@@ -237,25 +249,13 @@ def test_confirmed_fill_closes_what_carving_opens() -> None:
     was. The wall it adds lies within a voxel of the truth, and nowhere else does the
     model gain a surface off the scene."""
     chamber = _chamber()
-    plate = trimesh.creation.box(extents=PLATE_HI - PLATE_LO)
-    plate.apply_translation((PLATE_HI + PLATE_LO) / 2.0)
-    preop = trimesh.util.concatenate([chamber, plate])
-    model = build_preop_model(
-        preop, CAM, _poses(16, seed=1, spread_mm=5.0), BuildConfig(VOXEL_MM, 2.0)
-    )
-    centres = transform_points(
-        model.T_world_from_voxel, np.argwhere(np.ones(model.shape, bool)).astype(float)
-    ).reshape(*model.shape, 3)
+    model, centres = _sweep_model(trimesh.util.concatenate([chamber, _plate()]))
     shadow = np.all((centres > SHADOW_LO) & (centres < SHADOW_HI), axis=-1)
     model.tsdf[shadow], model.weight[shadow] = 1.0, 0.0
     # The gap right behind the plate was seen free (obliquely); what lies past it never.
     gap = np.all((centres > [-3.5, -3.5, 6.1]) & (centres < [3.5, 3.5, 9.0]), axis=-1)
     model.tsdf[gap], model.weight[gap] = 1.0, 1.0
-    rc = MeshRaycaster.from_trimesh(chamber)
-    frames = [
-        Frame(index=i, T_world_from_cam=T, depth_mm=rc.render_depth(CAM, T))
-        for i, T in enumerate(_poses(16, seed=2, spread_mm=5.0))
-    ]
+    frames = _step_frames(chamber)
     opened, _ = update_step(model, CAM, frames, _EstimateOf(), UpdateConfig(fill_confirmed=False))
     closed, _ = update_step(model, CAM, frames, _EstimateOf(), UpdateConfig())
 
