@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from test_updater_scenes import LearntExactDepth
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
@@ -432,12 +433,6 @@ def test_noisy_votes_is_checked() -> None:
             UpdateConfig(noisy_votes=bad)
 
 
-class _LearntExactDepth(GroundTruthDepth):
-    """Exact depth declared a learnt estimate (as the change-aware network is)."""
-
-    is_estimate = True
-
-
 def test_a_learnt_estimate_is_carved_as_noisy_whatever_its_measured_noise(scene: dict) -> None:
     # Exact depth measures no noise, so it carves as precise; declared a learnt estimate
     # (is_estimate), its frames only vote: two frames that see the window free nothing,
@@ -450,18 +445,18 @@ def test_a_learnt_estimate_is_carved_as_noisy_whatever_its_measured_noise(scene:
     fr = _frames(scene["after"], true, true)
     cfg = UpdateConfig(register=False, noisy_votes=3, change=ChangeConfig(min_views=0))
     plain, _ = update_step(scene["model"], CAM, fr[:2], GroundTruthDepth(), cfg)
-    learnt, rep = update_step(scene["model"], CAM, fr[:2], _LearntExactDepth(), cfg)
+    learnt, rep = update_step(scene["model"], CAM, fr[:2], LearntExactDepth(), cfg)
     opened = (scene["model"].tsdf < 0) & (plain.tsdf > 0)
     assert opened.sum() > 20
     assert not ((scene["model"].tsdf < 0) & (learnt.tsdf > 0)).any()
     assert sum(f["deleted_px"] for f in rep.to_dict()["frames"]) > 0  # they voted
-    three, _ = update_step(scene["model"], CAM, fr[:3], _LearntExactDepth(), cfg)
+    three, _ = update_step(scene["model"], CAM, fr[:3], LearntExactDepth(), cfg)
     assert ((scene["model"].tsdf < 0) & (three.tsdf > 0)).sum() > 20  # the third vote
     # With every frame (confirmation back on) the window opens to within two voxels.
     every = UpdateConfig(register=False, noisy_votes=3)
-    learnt, _ = update_step(scene["model"], CAM, fr, _LearntExactDepth(), every)
+    learnt, _ = update_step(scene["model"], CAM, fr, LearntExactDepth(), every)
     _check_window(scene["model"], learnt, 2 * VOXEL_MM)
-    up = ChiselUpdater(scene["model"].copy(), CAM, _LearntExactDepth(), cfg)
+    up = ChiselUpdater(scene["model"].copy(), CAM, LearntExactDepth(), cfg)
     up.begin_step()
     for f in fr[:2]:
         up.process(f)
@@ -537,10 +532,7 @@ def test_an_estimate_reliable_everywhere_carves_as_exact_depth(scene: dict) -> N
     # through the registration (tests/test_updater.py, the streaming test).
     np.testing.assert_allclose(streamed[1], streamed[0], rtol=0, atol=1e-6)
 
-    class _Estimate(GroundTruthDepth):
-        is_estimate = True
-
-    noisy, _ = update_step(scene["model"], CAM, fr, _Estimate())
+    noisy, _ = update_step(scene["model"], CAM, fr, LearntExactDepth())
     assert (noisy.tsdf != exact.tsdf).any()
     with pytest.raises(InvalidInputError, match=r"reliable pixels.*\(3, 3\)"):
         update_step(scene["model"], CAM, fr, _DeclaredReliable((3, 3)))

@@ -18,6 +18,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import trimesh
+from test_updater_scenes import LearntExactDepth
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
@@ -221,18 +222,6 @@ def test_garbage_depth_is_not_confirmed(scene: dict) -> None:
     assert _written(c, d).sum() > 100
 
 
-class _EstimateOf:
-    """The frame's own exact depth declared a learnt estimate: carved as a noisy frame
-    (deletion votes, one thin layer), as the network's depth is."""
-
-    is_metric = True
-    is_estimate = True
-
-    def __call__(self, frame: Frame) -> np.ndarray:
-        assert frame.depth_mm is not None
-        return frame.depth_mm
-
-
 SHADOW_LO, SHADOW_HI = np.array([-3.5, -3.5, 9.0]), np.array([3.5, 3.5, 14.0])
 """Behind the plate (z 4..6) and its free gap: the air in front of the back wall (z = 10)
 and the wall itself."""
@@ -256,24 +245,27 @@ def test_confirmed_fill_closes_what_carving_opens() -> None:
     gap = np.all((centres > [-3.5, -3.5, 6.1]) & (centres < [3.5, 3.5, 9.0]), axis=-1)
     model.tsdf[gap], model.weight[gap] = 1.0, 1.0
     frames = _step_frames(chamber)
-    opened, _ = update_step(model, CAM, frames, _EstimateOf(), UpdateConfig(fill_confirmed=False))
-    closed, _ = update_step(model, CAM, frames, _EstimateOf(), UpdateConfig())
+    opened, _ = update_step(
+        model, CAM, frames, LearntExactDepth(), UpdateConfig(fill_confirmed=False)
+    )
+    closed, _ = update_step(model, CAM, frames, LearntExactDepth(), UpdateConfig())
 
-    def wall_vertices(m: TsdfModel) -> np.ndarray:
-        v = extract_mesh(m).vertices
+    v_open, v_closed = extract_mesh(opened).vertices, extract_mesh(closed).vertices
+
+    def wall_vertices(v: np.ndarray) -> np.ndarray:
         inside = np.all(
             (v > SHADOW_LO + [1.0, 1.0, 0.0]) & (v < SHADOW_HI - [1.0, 1.0, 0.0]), axis=1
         )
         return v[inside]
 
     assert _plate_vertices(opened) < 20 and _plate_vertices(closed) < 20  # the plate is gone
-    assert len(wall_vertices(opened)) < 20  # a hole where the plate was
-    wall = wall_vertices(closed)
+    assert len(wall_vertices(v_open)) < 20  # a hole where the plate was
+    wall = wall_vertices(v_closed)
     assert len(wall) > 100
     _, dist, _ = trimesh.proximity.closest_point(chamber, wall)
     assert dist.max() < VOXEL_MM
     assert np.abs(wall[:, 2] - 10.0).max() < VOXEL_MM
     # No surface anywhere else: the whole model lies on the scene as the hole's did.
-    _, d_open, _ = trimesh.proximity.closest_point(chamber, extract_mesh(opened).vertices)
-    _, d_closed, _ = trimesh.proximity.closest_point(chamber, extract_mesh(closed).vertices)
+    _, d_open, _ = trimesh.proximity.closest_point(chamber, v_open)
+    _, d_closed, _ = trimesh.proximity.closest_point(chamber, v_closed)
     assert d_closed.max() <= max(d_open.max(), 0.5 * VOXEL_MM)

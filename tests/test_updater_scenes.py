@@ -12,6 +12,7 @@ import trimesh
 
 from chisel.core.geometry import Camera, look_at, make_transform
 from chisel.core.raycast import MeshRaycaster
+from chisel.depth_source import GroundTruthDepth
 from chisel.io.sequence import Frame
 
 ROOM_LO = np.array([-15.0, -12.0, -10.0])
@@ -19,6 +20,13 @@ ROOM_HI = np.array([15.0, 12.0, 25.0])
 BITE_LO = np.array([-6.0, -6.0, 24.0])
 BITE_HI = np.array([0.0, 0.0, 29.0])
 """The cutter box; the far wall is at z = 25, so the pocket is 4 mm deep (z 25 -> 29)."""
+
+
+class LearntExactDepth(GroundTruthDepth):
+    """Exact depth declared a learnt estimate: carved as a noisy frame (deletion votes, one
+    thin layer), as a network's depth is, whatever its measured noise."""
+
+    is_estimate = True
 
 
 def _box(lo: np.ndarray, hi: np.ndarray) -> trimesh.Trimesh:
