@@ -10,11 +10,24 @@ from benchmark_module import load_benchmark
 from PIL import Image
 
 
-def _run(root: Path, means: dict[str, list[float]], tools: bool) -> None:
+def _run(
+    root: Path,
+    means: dict[str, list[float]],
+    tools: bool,
+    missing: dict[str, list[float]] | None = None,
+) -> None:
     base = root / "seed_0" / "base"
     base.mkdir(parents=True)
+    missing = missing or {}
     steps = [
-        {"step": s, "methods": {m: {"mean_mm": v[s - 1]} for m, v in means.items()}} for s in (1, 2)
+        {
+            "step": s,
+            "methods": {
+                m: {"mean_mm": v[s - 1], "missing_fraction": missing.get(m, [0.0, 0.0])[s - 1]}
+                for m, v in means.items()
+            },
+        }
+        for s in (1, 2)
     ]
     (base / "metrics.json").write_text(json.dumps({"steps": steps}))
     for s in (1, 2):
@@ -93,3 +106,24 @@ def test_several_runs_compare_their_means_and_print_the_tool_free_spread(
     got = json.loads(out_json.read_text())
     assert got["rows"]["updated"]["free_spread"] == [1.0, 0.7 / 0.5]
     assert got["tools"]["1"]["tool_frames"] == [1]  # read from the first tools run
+
+
+def test_a_tools_run_that_shows_less_is_flagged_beside_its_verdict(tmp_path: Path, capsys) -> None:
+    # The tools run is as accurate at both steps, but at step 2 it shows no surface at 2 %
+    # of the pixels against 1 % tool-free (over the half-point tolerance); at step 1
+    # 0.4 points more, within it.
+    means = {"updated": [0.5, 1.0]}
+    _run(tmp_path / "free", means, False, {"updated": [0.010, 0.010]})
+    _run(tmp_path / "tools", means, True, {"updated": [0.014, 0.020]})
+    out_json = tmp_path / "out.json"
+    rc = load_benchmark("compare_tools").main(
+        ["--free", str(tmp_path / "free"), "--tools", str(tmp_path / "tools"),
+         "--json", str(out_json)]
+    )  # fmt: skip
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "| PASS; more holes at steps [2]" in text
+    assert "updated | 0.0100, 0.0140 | 0.0100, 0.0200" in text
+    row = json.loads(out_json.read_text())["rows"]["updated"]
+    assert row["pass"] and row["more_holes_steps"] == [2]
+    assert row["tools_missing"] == [0.014, 0.020]
