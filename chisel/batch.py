@@ -36,7 +36,7 @@ from chisel.detect import (
     scale_free,
     validate_estimate,
 )
-from chisel.fill import confirm_fill
+from chisel.fill import confirm_fill, occluded_frames
 from chisel.fusion import check_pose_in_model
 from chisel.icp import icp_similarity
 from chisel.io.sequence import Frame
@@ -203,7 +203,8 @@ def update_step(
     if cfg.change.min_views > 0:
         dets = confirm_changes(dets, camera, cfg.change)
     if step_cfg.fill_unseen and step_cfg.fill_confirmed:
-        dets = confirm_fill(dets, model, camera, step_cfg)
+        occluded = occluded_frames([f.mask for f in frames])
+        dets = confirm_fill(dets, model, camera, step_cfg, occluded)
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)
     votes = np.zeros(new.shape, dtype=np.uint8)

@@ -104,8 +104,8 @@ def depth_edges(depth_mm: np.ndarray, jump_mm: float) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _agreement_kernel(cands, ests, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist, tol_mm,
-                      support, observed):  # fmt: skip
+def _agreement_kernel(cands, ests, rays, T_wc, T_cw, used, occluded, fx, fy, cx, cy, dist,
+                      tol_mm, support, observed):  # fmt: skip
     N, H, W = cands.shape
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for i in numba.prange(N):
@@ -124,7 +124,7 @@ def _agreement_kernel(cands, ests, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist,
                 n_sup = 0
                 n_obs = 0
                 for j in range(N):
-                    if j == i or not used[j]:
+                    if j == i or not used[j] or (occluded[i] and occluded[j]):
                         continue
                     uu, vv, zc = _project_into(
                         T_cw, j, X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3, W, H
@@ -152,6 +152,7 @@ def estimate_support(
     T_world_from_cams: np.ndarray,
     used: np.ndarray,
     tol_mm: float,
+    occluded: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """How many other frames put each candidate pixel's surface point where it does:
     (support, observed), (N, H, W) int32, 0 where not a candidate.
@@ -162,6 +163,8 @@ def estimate_support(
     *observes* it when its estimate there is valid and not nearer than the point by more
     than ``tol_mm`` (not occluded), and *supports* it when its estimate lies within
     ``tol_mm`` of the point's depth; deeper, it contradicts it (sees through it).
+    occluded : (N,) bool or None; two occluded frames (:func:`occluded_frames`) neither
+    support nor observe each other's points.
     """
     c = np.ascontiguousarray(candidates, dtype=np.bool_)
     N = len(c)
@@ -175,20 +178,53 @@ def estimate_support(
         raise InvalidInputError("T_world_from_cams", f"expected ({N}, 4, 4) poses and ({N},) used")
     if not (np.isfinite(tol_mm) and tol_mm > 0):
         raise InvalidInputError("tol_mm", f"must be > 0 mm, got {tol_mm}")
+    occ = np.zeros(N, dtype=np.bool_) if occluded is None else np.asarray(occluded, np.bool_)
+    if occ.shape != (N,):
+        raise InvalidInputError("occluded", f"expected ({N},) bool, got shape {occ.shape}")
     c = c & (e > 0)  # a candidate needs a depth of its own (the caller's array is kept)
     support = np.zeros(c.shape, dtype=np.int32)
     observed = np.zeros(c.shape, dtype=np.int32)
     T_cw = np.ascontiguousarray(np.stack([invert_rigid(T) for T in P])) if N else P
     _agreement_kernel(
         c, e, np.ascontiguousarray(camera.rays_cam()), P, T_cw,
-        np.ascontiguousarray(used, dtype=np.bool_), camera.fx, camera.fy, camera.cx, camera.cy,
+        np.ascontiguousarray(used, dtype=np.bool_), np.ascontiguousarray(occ), camera.fx,
+        camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64), float(tol_mm), support, observed,
     )  # fmt: skip
     return support, observed
 
 
+OCCLUDED_FRACTION = 0.005
+"""A frame is occluded when its mask hides more than this fraction of the pixels that most
+of the step's frames keep (:func:`occluded_frames`)."""
+
+
+def occluded_frames(masks: list[np.ndarray | None]) -> np.ndarray:
+    """(N,) bool: the frames whose mask hides part of what the step's other frames see.
+
+    masks : per frame (H, W) bool, True = use the pixel (the sequence's mask and field
+    stop), or None = every pixel. A pixel that at least half of the frames keep belongs to
+    the view; a frame hiding more than ``OCCLUDED_FRACTION`` of those has something in
+    front of the tissue, an instrument, say. A mask shared by every frame (the field
+    stop) occludes nothing.
+    """
+    given = [m for m in masks if m is not None]
+    if not given:
+        return np.zeros(len(masks), dtype=bool)
+    shape = given[0].shape
+    stack = np.stack([np.ones(shape, bool) if m is None else np.asarray(m, bool) for m in masks])
+    view = stack.mean(axis=0) >= 0.5
+    n_view = max(int(view.sum()), 1)
+    hidden = (view[None] & ~stack).reshape(len(masks), -1).sum(axis=1)
+    return hidden > OCCLUDED_FRACTION * n_view
+
+
 def confirm_fill(
-    dets: list[Detection], model: TsdfModel, camera: Camera, cfg: UpdateConfig
+    dets: list[Detection],
+    model: TsdfModel,
+    camera: Camera,
+    cfg: UpdateConfig,
+    occluded: np.ndarray | None = None,
 ) -> list[Detection]:
     """The step's detections with ``fill`` set: the pixels whose estimate may fill the
     voxels ``model`` (M_t) never observed, confirmed by other frames.
@@ -198,7 +234,11 @@ def confirm_fill(
     jump of the truncation distance), and at least ``cfg.change.min_views`` other frames,
     and at least ``cfg.change.min_agreement`` of those that observe its point, put the
     surface within the truncation distance of it (:func:`estimate_support`): what the
-    TSDF would average into one surface. Sweep-built models only: a whole-CT model's
+    TSDF would average into one surface. Two frames that both show an occluder
+    (``occluded``, :func:`occluded_frames`) do not count for each other: a network's depth
+    is distorted across the whole frame when an instrument is in view, alike in the frames
+    of one tool episode, so their agreement is not independent evidence (docs/updater.md,
+    "Frames with an instrument in view"). Sweep-built models only: a whole-CT model's
     never-observed voxels lie outside the CT (``UpdateConfig.fill_confirmed``); its
     detections are returned as they are.
     """
@@ -217,7 +257,7 @@ def confirm_fill(
     if used.sum() < 2 or not cands.any():
         return list(dets)
     ests, poses = stack_maps(dets, "m_raw", shape), stack_poses(dets)
-    support, observed = estimate_support(cands, ests, camera, poses, used, model.trunc_mm)
+    support, observed = estimate_support(cands, ests, camera, poses, used, model.trunc_mm, occluded)
     views, agreement = cfg.change.min_views, cfg.change.min_agreement
     keep = cands & (support >= max(views, 1)) & (support >= agreement * observed)
     return [replace(d, fill=k) if d.used else d for d, k in zip(dets, keep, strict=True)]

@@ -98,7 +98,8 @@ class UpdateConfig:
     next to a surface the model shows (within the truncation distance of the estimate),
     and behind what carving deleted, where at least ``change.min_views`` other frames,
     and ``change.min_agreement`` of those that see the point, put the surface within the
-    truncation distance of it (:func:`chisel.fill.confirm_fill`). One view is all there
+    truncation distance of it (:func:`chisel.fill.confirm_fill`; two frames with an
+    instrument in view do not count for each other). One view is all there
     is of a hole the model shows nothing in; next to a surface, one frame's wrong depth
     would write into every unobserved voxel it reaches. The streaming updater has no
     other frames: unseen only. Sweep-built models only: a whole-CT model's

@@ -26,7 +26,7 @@ from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, look_at, transform_points
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth, GroundTruthDepth
-from chisel.fill import depth_edges, estimate_support, near_unobserved
+from chisel.fill import depth_edges, estimate_support, near_unobserved, occluded_frames
 from chisel.io.sequence import Frame
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
@@ -139,6 +139,17 @@ def test_support_counts_the_views_that_put_the_surface_there() -> None:
     # An unused frame neither supports nor observes.
     sup_u, _ = estimate_support(cands, est, CAM, P, np.array([1, 0, 1, 1, 1], bool), 1.0)
     np.testing.assert_array_equal(sup_u[0], expected - seen_by_1)
+    # Two occluded frames do not count for each other; one occluded frame counts as any.
+    both = np.array([1, 1, 0, 0, 0], bool)
+    sup_o, obs_o = estimate_support(cands, est, CAM, P, used, 1.0, occluded=both)
+    np.testing.assert_array_equal(sup_o[0], expected - seen_by_1)
+    np.testing.assert_array_equal(obs_o[0], expected - seen_by_1)
+    one = np.array([0, 1, 0, 0, 0], bool)
+    sup_1, obs_1 = estimate_support(cands, est, CAM, P, used, 1.0, occluded=one)
+    np.testing.assert_array_equal(sup_1[0], expected)
+    np.testing.assert_array_equal(obs_1[0], expected)
+    with pytest.raises(InvalidInputError, match="occluded"):
+        estimate_support(cands, est, CAM, P, used, 1.0, occluded=np.ones(N + 1, bool))
     with pytest.raises(InvalidInputError, match="tol_mm"):
         estimate_support(cands, est, CAM, P, used, 0.0)
     with pytest.raises(InvalidInputError, match="estimates_mm"):
@@ -201,6 +212,43 @@ def test_confirmed_fill_adds_the_lamella_the_sweep_never_saw(scene: dict) -> Non
     ct_confirmed, _ = update_step(as_ct, CAM, fr, GroundTruthDepth())
     assert ct_confirmed.tsdf.tobytes() == unseen_only.tsdf.tobytes()
     assert ct_confirmed.weight.tobytes() == unseen_only.weight.tobytes()
+
+
+def test_occluded_frames_hide_what_the_other_frames_see() -> None:
+    """A field stop shared by every frame occludes nothing; a frame that also hides a
+    block the others keep (an instrument) is occluded once the block passes 0.5 % of the
+    view; a frame without a mask hides nothing."""
+    stop = np.zeros((40, 50), bool)
+    stop[5:35, 5:45] = True  # 1200 px of view
+    tool, speck = stop.copy(), stop.copy()
+    tool[5:15, 5:15] = False  # 100 px hidden
+    speck[5:7, 5:7] = False  # 4 px: under 0.5 % of 1200
+    got = occluded_frames([stop, tool, stop, None, speck])
+    np.testing.assert_array_equal(got, [False, True, False, False, False])
+    assert not occluded_frames([None, None]).any()
+    assert not occluded_frames([stop, stop]).any()
+
+
+def test_occluded_frames_do_not_confirm_each_other(scene: dict) -> None:
+    """Every frame of the step hides a different corner (an instrument in every view):
+    no two frames count for each other and the plate is not filled; with the instrument in
+    half of the frames the others still confirm it."""
+    model, fr = scene["model"], scene["frames"]
+    H, W = CAM.shape
+    corners = [(slice(0, 16), slice(0, 16)), (slice(0, 16), slice(W - 16, W)),
+               (slice(H - 16, H), slice(0, 16)), (slice(H - 16, H), slice(W - 16, W))]  # fmt: skip
+
+    def hidden(f: Frame) -> Frame:
+        m = np.ones(CAM.shape, bool)
+        m[corners[f.index % 4]] = False
+        return replace(f, mask=m)
+
+    every = [hidden(f) for f in fr]
+    half = [hidden(f) if f.index % 2 else f for f in fr]
+    none_filled, _ = update_step(model, CAM, every, GroundTruthDepth())
+    half_filled, _ = update_step(model, CAM, half, GroundTruthDepth())
+    assert _plate_vertices(none_filled) < 20
+    assert _plate_vertices(half_filled) > 300
 
 
 def test_garbage_depth_is_not_confirmed(scene: dict) -> None:
