@@ -34,6 +34,7 @@ from chisel.detect import (
     detect,
     sample_points,
     scale_free,
+    stack_maps,
     validate_estimate,
 )
 from chisel.fill import confirm_fill, occluded_frames
@@ -203,7 +204,8 @@ def update_step(
     if cfg.change.min_views > 0:
         dets = confirm_changes(dets, camera, cfg.change)
     if step_cfg.fill_unseen and step_cfg.fill_confirmed:
-        occluded = occluded_frames([f.mask for f in frames])
+        renders = stack_maps(dets, "m_t", camera.shape)
+        occluded = occluded_frames([f.mask for f in frames], renders)
         dets = confirm_fill(dets, model, camera, step_cfg, occluded)
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)

@@ -214,33 +214,42 @@ def test_confirmed_fill_adds_the_lamella_the_sweep_never_saw(scene: dict) -> Non
     assert ct_confirmed.weight.tobytes() == unseen_only.weight.tobytes()
 
 
-def test_occluded_frames_hide_what_the_other_frames_see() -> None:
+def test_occluded_frames_hide_tissue_the_other_frames_see() -> None:
     """A field stop shared by every frame occludes nothing; a frame that also hides a
-    block the others keep (an instrument) is occluded once the block passes 0.5 % of the
-    view; a frame without a mask hides nothing."""
+    block of tissue the others keep (an instrument) is occluded once the block passes 2 %
+    of the view; a block where the model shows no surface (a ray that meets no tissue) is
+    no occluder; a frame without a mask hides nothing."""
     stop = np.zeros((40, 50), bool)
     stop[5:35, 5:45] = True  # 1200 px of view
-    tool, speck = stop.copy(), stop.copy()
-    tool[5:15, 5:15] = False  # 100 px hidden
-    speck[5:7, 5:7] = False  # 4 px: under 0.5 % of 1200
-    got = occluded_frames([stop, tool, stop, None, speck])
-    np.testing.assert_array_equal(got, [False, True, False, False, False])
-    assert not occluded_frames([None, None]).any()
-    assert not occluded_frames([stop, stop]).any()
+    tool, speck, void = stop.copy(), stop.copy(), stop.copy()
+    tool[5:15, 5:15] = False  # 100 px hidden: 8 %
+    speck[5:9, 5:9] = False  # 16 px: under 2 % of 1200
+    void[25:35, 35:45] = False  # 100 px where the model shows nothing
+    renders = np.full((6, 40, 50), 20.0, np.float32)
+    renders[5, 25:35, 35:45] = np.nan
+    got = occluded_frames([stop, tool, stop, None, speck, void], renders)
+    np.testing.assert_array_equal(got, [False, True, False, False, False, False])
+    renders[5] = 20.0  # the same block with tissue behind it
+    assert occluded_frames([stop, tool, stop, None, speck, void], renders)[5]
+    assert not occluded_frames([None, None], renders[:2]).any()
+    assert not occluded_frames([stop, stop], renders[:2]).any()
+    with pytest.raises(InvalidInputError, match="renders_mm"):
+        occluded_frames([stop, stop], renders)
 
 
 def test_occluded_frames_do_not_confirm_each_other(scene: dict) -> None:
-    """Every frame of the step hides a different corner (an instrument in every view):
-    no two frames count for each other and the plate is not filled; with the instrument in
-    half of the frames the others still confirm it."""
+    """Every frame of the step hides a block of wall in one of four places (an instrument
+    in every view, 9 % of it): no two frames count for each other and the plate is not
+    filled; with the instrument in half of the frames the others still confirm it."""
     model, fr = scene["model"], scene["frames"]
     H, W = CAM.shape
-    corners = [(slice(0, 16), slice(0, 16)), (slice(0, 16), slice(W - 16, W)),
-               (slice(H - 16, H), slice(0, 16)), (slice(H - 16, H), slice(W - 16, W))]  # fmt: skip
+    blocks = [(slice(8, 32), slice(8, 32)), (slice(8, 32), slice(W - 32, W - 8)),
+              (slice(H - 32, H - 8), slice(8, 32)),
+              (slice(H - 32, H - 8), slice(W - 32, W - 8))]  # fmt: skip
 
     def hidden(f: Frame) -> Frame:
         m = np.ones(CAM.shape, bool)
-        m[corners[f.index % 4]] = False
+        m[blocks[f.index % 4]] = False
         return replace(f, mask=m)
 
     every = [hidden(f) for f in fr]
