@@ -34,10 +34,9 @@ from chisel.detect import (
     detect,
     sample_points,
     scale_free,
-    stack_maps,
     validate_estimate,
 )
-from chisel.fill import confirm_fill, occluded_frames
+from chisel.fill import confirm_fill
 from chisel.fusion import check_pose_in_model
 from chisel.icp import icp_similarity
 from chisel.io.sequence import Frame
@@ -204,9 +203,7 @@ def update_step(
     if cfg.change.min_views > 0:
         dets = confirm_changes(dets, camera, cfg.change)
     if step_cfg.fill_unseen and step_cfg.fill_confirmed:
-        renders = stack_maps(dets, "m_t", camera.shape)
-        occluded = occluded_frames([f.mask for f in frames], renders)
-        dets = confirm_fill(dets, model, camera, step_cfg, occluded)
+        dets = confirm_fill(dets, model, camera, step_cfg, [f.mask for f in frames])
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)
     votes = np.zeros(new.shape, dtype=np.uint8)

@@ -233,7 +233,7 @@ def confirm_fill(
     model: TsdfModel,
     camera: Camera,
     cfg: UpdateConfig,
-    occluded: np.ndarray | None = None,
+    masks: list[np.ndarray | None] | None = None,
 ) -> list[Detection]:
     """The step's detections with ``fill`` set: the pixels whose estimate may fill the
     voxels ``model`` (M_t) never observed, confirmed by other frames.
@@ -243,8 +243,9 @@ def confirm_fill(
     jump of the truncation distance), and at least ``cfg.change.min_views`` other frames,
     and at least ``cfg.change.min_agreement`` of those that observe its point, put the
     surface within the truncation distance of it (:func:`estimate_support`): what the
-    TSDF would average into one surface. Two frames that both show an occluder
-    (``occluded``, :func:`occluded_frames`) do not count for each other: a network's depth
+    TSDF would average into one surface. Two frames that both show an occluder (their
+    ``masks``, the frames' own, hide tissue: :func:`occluded_frames`) do not count for
+    each other: a network's depth
     is distorted across the whole frame when an instrument is in view, alike in the frames
     of one tool episode, so their agreement is not independent evidence (docs/updater.md,
     "Frames with an instrument in view"). Sweep-built models only: a whole-CT model's
@@ -266,6 +267,7 @@ def confirm_fill(
     if used.sum() < 2 or not cands.any():
         return list(dets)
     ests, poses = stack_maps(dets, "m_raw", shape), stack_poses(dets)
+    occluded = None if masks is None else occluded_frames(masks, stack_maps(dets, "m_t", shape))
     support, observed = estimate_support(cands, ests, camera, poses, used, model.trunc_mm, occluded)
     views, agreement = cfg.change.min_views, cfg.change.min_agreement
     keep = cands & (support >= max(views, 1)) & (support >= agreement * observed)
