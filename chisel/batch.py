@@ -200,10 +200,11 @@ def update_step(
         det = detect(inp, ctx)
         hand_eye.learn(det)
         dets.append(det)
+    masks = [f.mask for f in frames]
     if cfg.change.min_views > 0:
-        dets = confirm_changes(dets, camera, cfg.change)
+        dets = confirm_changes(dets, camera, cfg.change, masks)
     if step_cfg.fill_unseen and step_cfg.fill_confirmed:
-        dets = confirm_fill(dets, model, camera, step_cfg, [f.mask for f in frames])
+        dets = confirm_fill(dets, model, camera, step_cfg, masks)
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)
     votes = np.zeros(new.shape, dtype=np.uint8)
