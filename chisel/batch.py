@@ -200,11 +200,10 @@ def update_step(
         det = detect(inp, ctx)
         hand_eye.learn(det)
         dets.append(det)
-    masks = [f.mask for f in frames]
     if cfg.change.min_views > 0:
-        dets = confirm_changes(dets, camera, cfg.change, masks)
+        dets = confirm_changes(dets, camera, cfg.change)
     if step_cfg.fill_unseen and step_cfg.fill_confirmed:
-        dets = confirm_fill(dets, model, camera, step_cfg, masks)
+        dets = confirm_fill(dets, model, camera, step_cfg, [f.mask for f in frames])
     new = model.copy()
     reset = np.zeros(new.shape, dtype=np.uint8)
     votes = np.zeros(new.shape, dtype=np.uint8)

@@ -60,10 +60,6 @@ class ChangeConfig:
     than its render by at most this fraction of its threshold; between that and the
     threshold (an oblique view of the cut's side face just behind the old surface) its
     view is ambiguous and not counted (1.0 = the strict rule)."""
-    hidden_vote_frames: int = 8
-    """Multi-view check: a frame whose view of a point an instrument hides (its mask, in a
-    frame that hides tissue, :func:`occluder_pixels`) votes as the nearest frame in time,
-    at most this many frames away, that sees the point (0 = hidden views do not count)."""
     noise_k: float = 3.0
     """Noise-adaptive threshold: per frame, max(threshold_mm, noise_k * sigma) with sigma
     the robust spread of M' - M_t (see :func:`frame_threshold`) (0 = off: fixed threshold)."""
@@ -78,7 +74,7 @@ class ChangeConfig:
             raise InvalidInputError("noise_k", f"must be >= 0, got {self.noise_k}")
         if not self.visible_mm > 0:
             raise InvalidInputError("visible_mm", f"must be > 0 mm, got {self.visible_mm}")
-        for name in ("open_px", "close_px", "min_area_px", "min_views", "hidden_vote_frames"):
+        for name in ("open_px", "close_px", "min_area_px", "min_views"):
             if int(getattr(self, name)) < 0:
                 raise InvalidInputError(name, f"must be >= 0, got {getattr(self, name)}")
         # A kernel wider than any image is meaningless, and OpenCV would allocate its square.
@@ -384,89 +380,9 @@ def clean_mask(mask: np.ndarray, cfg: ChangeConfig) -> np.ndarray:
     return m.astype(bool)
 
 
-OCCLUDED_FRACTION = 0.02
-"""A frame is occluded when its mask hides the model's surface over more than this
-fraction of the pixels that most of the step's frames keep (:func:`occluded_frames`). On
-the tools variant's renders a frame with an instrument hides a median 6-7 % of the view
-this way; a tool-free frame at most 1.1 % (seeds 0-4 and 8-12: rays that leave the
-phantom, masked by the simulator, where the model mostly shows nothing either)."""
-
-
-def occluded_frames(masks: list[np.ndarray | None], renders_mm: np.ndarray) -> np.ndarray:
-    """(N,) bool: the frames whose mask hides tissue that the step's other frames see.
-
-    masks : per frame (H, W) bool, True = use the pixel (the sequence's mask and field
-    stop), or None = every pixel. renders_mm : (N, H, W) float32 the model at each frame's
-    pose, NaN = no surface. A pixel that at least half of the frames keep belongs to the
-    view; a frame whose mask hides the model's surface over more than
-    ``OCCLUDED_FRACTION`` of the view has something in front of the tissue, an
-    instrument, say. A mask that every frame shares (the field stop) hides nothing of the
-    view, and a masked pixel where the model shows no surface (a ray that meets no
-    tissue) is no occluder.
-    """
-    hidden, view_px = _hidden_tissue(masks, renders_mm)
-    return hidden.reshape(len(hidden), -1).sum(axis=1) > OCCLUDED_FRACTION * max(view_px, 1)
-
-
-def occluder_pixels(masks: list[np.ndarray | None], renders_mm: np.ndarray) -> np.ndarray | None:
-    """(N, H, W) bool: the pixels where an occluded frame's mask hides the model's surface
-    in the view (:func:`occluded_frames`), or None when no frame is occluded."""
-    hidden, view_px = _hidden_tissue(masks, renders_mm)
-    occluded = hidden.reshape(len(hidden), -1).sum(axis=1) > OCCLUDED_FRACTION * max(view_px, 1)
-    if not occluded.any():
-        return None
-    return hidden & occluded[:, None, None]
-
-
-def _hidden_tissue(
-    masks: list[np.ndarray | None], renders_mm: np.ndarray
-) -> tuple[np.ndarray, int]:
-    """(N, H, W) bool masked pixels of the view where the model shows a surface, and the
-    view's size in pixels (pixels at least half of the frames keep)."""
-    n = len(masks)
-    r = np.asarray(renders_mm)
-    if r.ndim != 3 or len(r) != n:
-        raise InvalidInputError("renders_mm", f"expected {n} renders (N, H, W), got {r.shape}")
-    if all(m is None for m in masks):
-        return np.zeros(r.shape, dtype=bool), int(np.prod(r.shape[1:]))
-    keep = np.stack(
-        [np.ones(r.shape[1:], bool) if m is None else np.asarray(m, bool) for m in masks]
-    )
-    view = keep.mean(axis=0) >= 0.5
-    return view[None] & ~keep & np.isfinite(r), int(view.sum())
-
-
-@numba.njit(inline="always")
-def _view_vote(j, X, Y, Z, renders, diffs, hidden, T_cw, fx, fy, cx, cy, k1, k2, p1, p2, k3,
-               W, H, threshold_mm, visible_mm, contradict):  # fmt: skip
-    # Frame j's view of an old surface point: -2 not in view, -1 hidden (an instrument in
-    # front of it), 0 no estimate or ambiguous, 1 contradicts, 2 supports its removal.
-    uu, vv, zc = _project_into(T_cw, j, X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3, W, H)
-    if uu < 0:
-        return -2
-    rj = renders[j, vv, uu]
-    # Frame j sees the same old surface point (not occluded, not beside it)...
-    if not (abs(rj - zc) <= visible_mm):
-        return -2
-    if hidden[j, vv, uu]:
-        return -1
-    dj = diffs[j, vv, uu]
-    if not (dj == dj):  # NaN: no estimate there (lost in projection)
-        return 0
-    # ...and its own estimate also says the surface moved away (support), or says it is
-    # still there (contradiction); in between it is ambiguous (e.g. an oblique view of the
-    # cut's side face just behind) and not counted.
-    if dj > threshold_mm[j]:
-        return 2
-    if dj <= contradict * threshold_mm[j]:
-        return 1
-    return 0
-
-
 @numba.njit(parallel=True, cache=True)
-def _consistency_kernel(masks, renders, diffs, hidden, rays, T_wc, T_cw, used, fx, fy, cx, cy,
-                        dist, threshold_mm, visible_mm, contradict, window, support,
-                        observed):  # fmt: skip
+def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist,
+                        threshold_mm, visible_mm, contradict, support, observed):  # fmt: skip
     N, H, W = masks.shape
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for i in numba.prange(N):
@@ -487,29 +403,25 @@ def _consistency_kernel(masks, renders, diffs, hidden, rays, T_wc, T_cw, used, f
                 for j in range(N):
                     if j == i or not used[j]:
                         continue
-                    vote = _view_vote(j, X, Y, Z, renders, diffs, hidden, T_cw, fx, fy, cx, cy,
-                                      k1, k2, p1, p2, k3, W, H, threshold_mm, visible_mm,
-                                      contradict)  # fmt: skip
-                    if vote == -1:
-                        # Hidden: the vote of the nearest frame in time that sees the point
-                        # (which then counts twice: it stands in for its neighbour).
-                        vote = 0
-                        for step in range(1, window + 1):
-                            for k in (j - step, j + step):
-                                if k < 0 or k >= N or k == i or not used[k]:
-                                    continue
-                                vk = _view_vote(k, X, Y, Z, renders, diffs, hidden, T_cw, fx,
-                                                fy, cx, cy, k1, k2, p1, p2, k3, W, H,
-                                                threshold_mm, visible_mm, contradict)  # fmt: skip
-                                if vk >= 1:
-                                    vote = vk
-                                    break
-                            if vote >= 1:
-                                break
-                    if vote == 2:
+                    uu, vv, zc = _project_into(
+                        T_cw, j, X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3, W, H
+                    )
+                    if uu < 0:
+                        continue
+                    rj = renders[j, vv, uu]
+                    # Frame j sees the same old surface point (not occluded, not beside it)...
+                    if not (abs(rj - zc) <= visible_mm):
+                        continue
+                    dj = diffs[j, vv, uu]
+                    if not (dj == dj):  # NaN: no estimate there (lost in projection)
+                        continue
+                    # ...and its own estimate also says the surface moved away (support), or
+                    # says it is still there (contradiction); in between it is ambiguous
+                    # (e.g. an oblique view of the cut's side face just behind) and not counted.
+                    if dj > threshold_mm[j]:
                         n_sup += 1
                         n_obs += 1
-                    elif vote == 1:
+                    elif dj <= contradict * threshold_mm[j]:
                         n_obs += 1
                 support[i, v, u] = n_sup
                 observed[i, v, u] = n_obs
@@ -525,8 +437,6 @@ def multiview_support(
     threshold_mm: float | np.ndarray,
     visible_mm: float,
     contradict_fraction: float = 1.0,
-    hidden: np.ndarray | None = None,
-    window: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """How many other frames confirm each changed pixel: (support, observed), (N, H, W) int32.
 
@@ -544,14 +454,6 @@ def multiview_support(
     deeper by at most ``contradict_fraction`` times that threshold; an observation in
     between is ambiguous and counts in neither (``observed`` = supporters + contradictors;
     1.0 = every observation counts).
-    hidden : (N, H, W) bool or None, pixels where something stands in front of the tissue
-    (an instrument: :func:`occluder_pixels`). A frame whose view of the point is hidden
-    there takes the vote of the nearest frame in time, at most ``window`` frames away, that
-    sees the point unhidden and supports or contradicts; without one it does not count. A
-    tool takes a few neighbouring frames' views of the tissue beside it, and the frames
-    just before and after its episode saw the same tissue from about the same place:
-    ignoring the hidden views instead weighs the views left, which on a cut beside the tool
-    may all lie on one side of it.
     Counts are 0 at unchanged pixels.
     """
     m = np.ascontiguousarray(masks, dtype=np.bool_)
@@ -568,19 +470,14 @@ def multiview_support(
         )
     r = np.ascontiguousarray(renders_mm, dtype=np.float32)
     diffs = np.ascontiguousarray(estimates_mm, dtype=np.float32) - r
-    if hidden is not None and np.shape(hidden) != m.shape:
-        raise InvalidInputError("hidden", f"shape {np.shape(hidden)} differs from masks {m.shape}")
-    if int(window) < 0:
-        raise InvalidInputError("window", f"must be >= 0 frames, got {window}")
-    hid = np.zeros_like(m) if hidden is None else np.ascontiguousarray(hidden, dtype=np.bool_)
     support = np.zeros(m.shape, dtype=np.int32)
     observed = np.zeros(m.shape, dtype=np.int32)
     _consistency_kernel(
-        m, r, diffs, hid, np.ascontiguousarray(camera.rays_cam()), np.ascontiguousarray(P),
+        m, r, diffs, np.ascontiguousarray(camera.rays_cam()), np.ascontiguousarray(P),
         np.ascontiguousarray(np.stack([invert_rigid(T) for T in P])) if N else P,
         np.ascontiguousarray(used, dtype=np.bool_), camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64),
         np.broadcast_to(np.asarray(threshold_mm, dtype=np.float64), (N,)).copy(),
-        float(visible_mm), float(contradict_fraction), int(window), support, observed,
+        float(visible_mm), float(contradict_fraction), support, observed,
     )  # fmt: skip
     return support, observed

@@ -20,7 +20,6 @@ from chisel.change import (
     frame_threshold,
     impute,
     multiview_support,
-    occluder_pixels,
     shift_to_render,
     solve_scale,
     warp_depth,
@@ -324,12 +323,7 @@ def stack_poses(dets: list[Detection]) -> np.ndarray:
     return np.stack([cast(np.ndarray, d.T_world_from_cam) if d.used else np.eye(4) for d in dets])
 
 
-def confirm_changes(
-    dets: list[Detection],
-    camera: Camera,
-    cfg: ChangeConfig,
-    masks: list[np.ndarray | None] | None = None,
-) -> list[Detection]:
+def confirm_changes(dets: list[Detection], camera: Camera, cfg: ChangeConfig) -> list[Detection]:
     """Multi-view check of a step's change masks (batch mode): the detections with their
     masks confirmed.
 
@@ -338,29 +332,23 @@ def confirm_changes(
     of the frames that see it (:func:`chisel.change.multiview_support`). Depth errors of a
     monocular network differ from view to view, tissue removal does not: this is what
     keeps one frame's error from carving the model for good. The mask is cleaned again
-    afterwards (components below the minimum area go). ``masks``, the frames' own (True =
-    use the pixel): where an instrument hides a point from a frame
-    (:func:`chisel.change.occluder_pixels`), that frame votes as the nearest frame in time
-    that sees it (``cfg.hidden_vote_frames``).
+    afterwards (components below the minimum area go).
     """
     used = np.array([d.used for d in dets], dtype=bool)
     if used.sum() < 2:
         return list(dets)
     shape = camera.shape
     # A used detection has its mask.
-    changed = np.stack(
-        [cast(np.ndarray, d.mask) if d.used else np.zeros(shape, bool) for d in dets]
-    )
+    masks = np.stack([cast(np.ndarray, d.mask) if d.used else np.zeros(shape, bool) for d in dets])
     renders, estimates = stack_maps(dets, "m_t", shape), stack_maps(dets, "m_raw", shape)
-    hidden = None if masks is None else occluder_pixels(masks, renders)
     support, observed = multiview_support(
-        changed, renders, estimates, camera, stack_poses(dets), used,
+        masks, renders, estimates, camera, stack_poses(dets), used,
         np.array([d.threshold_mm if d.used else np.inf for d in dets]), cfg.visible_mm,
-        cfg.contradict_fraction, hidden, cfg.hidden_vote_frames,
+        cfg.contradict_fraction,
     )  # fmt: skip
     keep = (support >= cfg.min_views) & (support >= cfg.min_agreement * observed)
     out = []
-    for d, m, k in zip(dets, changed, keep, strict=True):
+    for d, m, k in zip(dets, masks, keep, strict=True):
         if not d.used:
             out.append(d)
             continue

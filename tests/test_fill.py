@@ -22,12 +22,11 @@ from test_updater_scenes import LearntExactDepth
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
-from chisel.change import occluded_frames
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, look_at, transform_points
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth, GroundTruthDepth
-from chisel.fill import depth_edges, estimate_support, near_unobserved
+from chisel.fill import depth_edges, estimate_support, near_unobserved, occluded_frames
 from chisel.io.sequence import Frame
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
