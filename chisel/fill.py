@@ -238,17 +238,16 @@ def confirm_fill(
     """The step's detections with ``fill`` set: the pixels whose estimate may fill the
     voxels ``model`` (M_t) never observed, confirmed by other frames.
 
-    A pixel, changed or not, fills when its estimate has a never-observed voxel within two voxels
-    (:func:`near_unobserved`), is not on a silhouette (:func:`depth_edges`, a
-    jump of the truncation distance), and at least ``cfg.change.min_views`` other frames,
-    and at least ``cfg.change.min_agreement`` of those that observe its point, put the
-    surface within the truncation distance of it (:func:`estimate_support`): what the
-    TSDF would average into one surface. Two frames that both show an occluder (their
-    ``masks``, the frames' own, hide tissue: :func:`occluded_frames`) do not count for
-    each other: a network's depth
-    is distorted across the whole frame when an instrument is in view, alike in the frames
-    of one tool episode, so their agreement is not independent evidence (docs/updater.md,
-    "Frames with an instrument in view"). Sweep-built models only: a whole-CT model's
+    A pixel, changed or not, fills when its estimate has a never-observed voxel within two
+    voxels (:func:`near_unobserved`), is not on a silhouette (:func:`depth_edges`, a jump
+    of the truncation distance), and at least ``cfg.change.min_views`` other frames, and
+    at least ``cfg.change.min_agreement`` of those that observe its point, put the surface
+    within the truncation distance of it (:func:`estimate_support`): what the TSDF would
+    average into one surface. Two frames that both show an occluder (their ``masks``, the
+    frames' own, hide tissue: :func:`occluded_frames`) do not count for each other: a
+    network's depth is distorted across the whole frame when an instrument is in view,
+    alike in the frames of one tool episode, so their agreement is not independent
+    evidence (docs/updater.md, "Frames with an instrument in view"). Sweep-built models only: a whole-CT model's
     never-observed voxels lie outside the CT (``UpdateConfig.fill_confirmed``); its
     detections are returned as they are.
     """
