@@ -1,37 +1,47 @@
-"""Benchmark: what limits the change-aware row's removal: the network's depth, where it
-decides "changed", or the carving a noisy estimate gets.
+"""Benchmark: what limits a network row's removal: the network's depth, where it decides
+"changed", or the carving a noisy estimate gets.
 
-For each seed and step of a finished `table` run with the `change_aware` row, the step is
-run again from that row's own model before it (the preoperative model at step 1), with
-the run's update config, once per depth source:
+For each seed and step of a finished `table` run with the row (``--method``:
+``change_aware``, the default, or ``updated``, the paper's monocular row), the step is run
+again from that row's own model before it (the preoperative model at step 1), with the
+run's update config, once per depth source:
 
-- ``network``: the per-patient change-aware network (the row itself, run again);
-- ``decision_true_depth``: the network's decision (change probability >= 0.5) with the
-  frame's true depth behind it, the render elsewhere: perfect depth where it says
-  "changed";
+- ``network``: the row's own depth, run again: the per-patient change-aware network, or
+  the monocular network's predictions the run stored (``depth/pred/step_KK``);
+- ``decision_true_depth`` (change-aware): the network's decision (change probability >=
+  0.5) with the frame's true depth behind it, the render elsewhere: perfect depth where it
+  says "changed";
+- ``above_noise_true_depth`` (monocular; runs ``network`` first): the frame's true depth
+  where it lies deeper than the render by more than the change threshold the network's
+  frame had in that run (3 sigma of its noise, ``change.noise_k``), the render elsewhere:
+  a perfect estimate that sees no more than the network's noise lets a frame see;
 - ``true_depth_noisy``: the frame's true depth, declared an estimate, so carved as the
   network is (``UpdateConfig.noisy_*``: votes, one layer, the cavity-middle rule, no cut
   inside held tissue): a perfect estimate under the noisy carving's guards;
 - ``true_depth``: the frame's true depth carved as precise (the exact-depth row's carving
   from the same start model);
-- ``network_oracle_reliable`` (not run unless named in ``--sources``): the network's own
-  depth, carved as precise exactly where it lies within ``--oracle-tol-mm`` (0.5) of the
-  truth and as a noisy estimate elsewhere: what a perfect per-pixel reliability head
-  would give (``last_reliable_px``, :mod:`chisel.depth_source`).
+- ``network_oracle_reliable`` (change-aware; not run unless named in ``--sources``): the
+  network's own depth, carved as precise exactly where it lies within ``--oracle-tol-mm``
+  (0.5) of the truth and as a noisy estimate elsewhere: what a perfect per-pixel
+  reliability head would give (``last_reliable_px``, :mod:`chisel.depth_source`).
 
 Each row's removed-tissue Dice, precision and recall against the truth (tissue in the
 preoperative label CT, air in the step's; :mod:`chisel.eval.volume`) is printed per seed
 and step as ``seed_S_step_K_SOURCE_dice: ...``. ``network`` to ``decision_true_depth`` is
 what the network's depth costs, ``decision_true_depth`` to ``true_depth_noisy`` what its
-decision costs, ``true_depth_noisy`` to ``true_depth`` what the noisy carving's guards
-cost. ``--true-poses`` gives every frame its true pose (no tracking error): what the
-tracker's error costs. Prints each source's mean Dice, ``cpu_simd``, ``elapsed_s`` and,
-last, ``noisy_carving_dice_cost``: the mean Dice of ``true_depth`` minus that of
-``true_depth_noisy`` (when both run: ``--sources``). ``--config`` runs a variant of the
-update config instead of the run's. About 10-25 s per source and step on this 2-core
-machine.
+decision costs, ``above_noise_true_depth`` to ``true_depth_noisy`` what the network's noise
+floor alone would cost, ``true_depth_noisy`` to ``true_depth`` what the noisy carving's
+guards cost. ``--true-poses`` gives every frame its true pose (no tracking error): what the
+tracker's error costs. Prints each source's mean Dice, ``cpu_simd``, ``elapsed_s``,
+``noise_floor_dice_cost`` (mean Dice of ``true_depth_noisy`` minus that of
+``above_noise_true_depth``, when both run) and, last, ``noisy_carving_dice_cost``: the mean
+Dice of ``true_depth`` minus that of ``true_depth_noisy`` (when both run: ``--sources``).
+``--config`` runs a variant of the update config instead of the run's. About 10-25 s per
+source and step on this 2-core machine.
 
     .venv/bin/python benchmarks/bench_carve_oracle.py --run RUN/results/default --seeds 0-4 --steps 1
+    .venv/bin/python benchmarks/bench_carve_oracle.py --run RUN/results/default --seeds 0-4 \
+        --steps 1-5 --method updated
 """
 
 from __future__ import annotations
@@ -50,7 +60,11 @@ sys.path.insert(0, str(ROOT))
 
 from chisel.batch import update_step  # noqa: E402
 from chisel.core.config import load_config_file  # noqa: E402
-from chisel.depth_source import GroundTruthDepth, load_change_aware_source  # noqa: E402
+from chisel.depth_source import (  # noqa: E402
+    GroundTruthDepth,
+    SequenceDepth,
+    load_change_aware_source,
+)
 from chisel.eval.volume import model_removal, removal_scores, true_removal  # noqa: E402
 from chisel.io.ct import read_ct_volume  # noqa: E402
 from chisel.io.sequence import Frame, Sequence  # noqa: E402
@@ -61,15 +75,37 @@ from sim.dataset import parse_seeds  # noqa: E402
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from host import cpu_simd  # noqa: E402
 
-METHOD = "change_aware"
+METHODS = ("change_aware", "updated")
 SOURCES = (
     "network",
     "decision_true_depth",
+    "above_noise_true_depth",
     "true_depth_noisy",
     "true_depth",
     "network_oracle_reliable",
 )
-DEFAULT_SOURCES = SOURCES[:4]
+ONLY_FOR = {
+    "decision_true_depth": "change_aware",
+    "network_oracle_reliable": "change_aware",
+    "above_noise_true_depth": "updated",
+}
+"""Sources that need what only one kind of network gives: a change probability and a
+metric output (change-aware), or a change threshold measured from relative depth."""
+DEFAULT_SOURCES = {
+    "change_aware": ("network", "decision_true_depth", "true_depth_noisy", "true_depth"),
+    "updated": ("network", "above_noise_true_depth", "true_depth_noisy", "true_depth"),
+}
+
+
+def check_sources(method: str, sources: tuple[str, ...]) -> None:
+    """Refuse a source that ``method``'s network cannot drive, naming both."""
+    for name in sources:
+        if ONLY_FOR.get(name, method) != method:
+            raise SystemExit(f"--sources {name}: only with --method {ONLY_FOR[name]}, not {method}")
+    if "above_noise_true_depth" in sources and "network" not in sources:
+        raise SystemExit(
+            "--sources above_noise_true_depth needs network too (its frames' change thresholds)"
+        )
 
 
 class DecisionTrueDepth:
@@ -122,6 +158,31 @@ class OracleReliable:
         return out
 
 
+class TrueDepthAboveNoise:
+    """The frame's true depth where it lies deeper than the render by more than the
+    network frame's change threshold (``thresholds_mm``: frame index -> mm, from the
+    network's run of the step), the render elsewhere; carved as the network is. A frame
+    the network's run did not use has no threshold and sees no change."""
+
+    is_metric = True
+    wants_prior = True
+    is_estimate = True
+
+    def __init__(self, thresholds_mm: dict[int, float]) -> None:
+        self.thresholds_mm = thresholds_mm
+
+    def __call__(self, frame: Frame, prior_mm: np.ndarray) -> np.ndarray:
+        if frame.depth_mm is None:
+            raise SystemExit(f"frame {frame.index}: no true depth (a rendered sequence is needed)")
+        threshold_mm = self.thresholds_mm.get(frame.index, np.inf)
+        with np.errstate(invalid="ignore"):
+            seen = frame.depth_mm - prior_mm > threshold_mm
+        out = np.where(seen, frame.depth_mm, prior_mm).astype(np.float32)
+        if frame.mask is not None:
+            out[~frame.mask] = np.nan
+        return out
+
+
 class TrueDepthAsEstimate(GroundTruthDepth):
     """The frame's true depth, carved as a learnt estimate (``is_estimate``)."""
 
@@ -135,38 +196,64 @@ def with_true_pose(frame: Frame) -> Frame:
     return dataclasses.replace(frame, T_world_from_cam=frame.T_world_from_cam_true)
 
 
+def make_source(
+    name: str,
+    net: Callable[..., np.ndarray] | None,
+    pred: Path,
+    seq: Sequence,
+    thresholds_mm: dict[int, float],
+    oracle_tol_mm: float,
+) -> Callable[..., np.ndarray]:
+    """Source ``name`` for one step: ``net`` is the change-aware network (None: the row is
+    the monocular one, whose depth the run stored in ``pred``); ``thresholds_mm`` are the
+    network's frames' change thresholds in its run of this step."""
+    if name == "network":
+        return net if net is not None else SequenceDepth(pred, of=seq)
+    if name == "true_depth_noisy":
+        return TrueDepthAsEstimate()
+    if name == "true_depth":
+        return GroundTruthDepth()
+    if name == "above_noise_true_depth":
+        return TrueDepthAboveNoise(thresholds_mm)
+    if net is None:  # check_sources refuses these for the monocular row
+        raise SystemExit(f"--sources {name}: only with --method change_aware")
+    if name == "decision_true_depth":
+        return DecisionTrueDepth(net)
+    return OracleReliable(net, oracle_tol_mm)
+
+
 def seed_scores(
     seed_dir: Path,
     steps: list[int],
     cfg: UpdateConfig,
-    sources: tuple[str, ...] = DEFAULT_SOURCES,
+    sources: tuple[str, ...] = DEFAULT_SOURCES["change_aware"],
     oracle_tol_mm: float = 0.5,
     true_poses: bool = False,
+    method: str = "change_aware",
 ) -> dict[int, dict[str, float]]:
     """Removed-tissue scores of each of ``steps`` of one seed, run again with each source.
 
-    The preoperative model, the preoperative label CT and the network are read once."""
+    The preoperative model, the preoperative label CT and the change-aware network are
+    read once."""
+    check_sources(method, sources)
     pre = TsdfModel.load(seed_dir / "preop" / "model.npz")
     ct = seed_dir / "phantom" / "ct"
     c0 = read_ct_volume(ct / "step_00_label.nii.gz", "label")
-    net = load_change_aware_source(seed_dir / "depth" / "change_aware_finetuned.pt")
-    make: dict[str, Callable[[], Callable[..., np.ndarray]]] = {
-        "network": lambda: net,
-        "decision_true_depth": lambda: DecisionTrueDepth(net),
-        "true_depth_noisy": TrueDepthAsEstimate,
-        "true_depth": GroundTruthDepth,
-        "network_oracle_reliable": lambda: OracleReliable(net, oracle_tol_mm),
-    }
+    net = (
+        load_change_aware_source(seed_dir / "depth" / "change_aware_finetuned.pt")
+        if method == "change_aware"
+        else None
+    )
     scores: dict[int, dict[str, float]] = {}
     for k in steps:
         start_path = (
             seed_dir / "preop" / "model.npz"
             if k == 1
-            else seed_dir / "base" / METHOD / f"step_{k - 1:02d}" / "model.npz"
+            else seed_dir / "base" / method / f"step_{k - 1:02d}" / "model.npz"
         )
         if not start_path.is_file():
             raise SystemExit(
-                f"{start_path}: missing (a `table` run with the {METHOD} row is needed)"
+                f"{start_path}: missing (a `table` run with the {method} row is needed)"
             )
         start = pre if k == 1 else TsdfModel.load(start_path)
         ck = read_ct_volume(ct / f"step_{k:02d}_label.nii.gz", "label")
@@ -175,9 +262,19 @@ def seed_scores(
         frames = [seq.frame(i) for i in range(len(seq))]
         if true_poses:
             frames = [with_true_pose(f) for f in frames]
+        pred_dir = seed_dir / "depth" / "pred" / f"step_{k:02d}"
+        # The network's own run comes first: its frames' thresholds drive above_noise.
+        thresholds_mm: dict[int, float] = {}
         out: dict[str, float] = {}
-        for name in sources:
-            model, _ = update_step(start, seq.camera, frames, make[name](), cfg)
+        for name in sorted(sources, key=SOURCES.index):
+            source = make_source(name, net, pred_dir, seq, thresholds_mm, oracle_tol_mm)
+            model, report = update_step(start, seq.camera, frames, source, cfg)
+            if name == "network":
+                thresholds_mm = {
+                    f.index: f.threshold_mm
+                    for f in report.frames
+                    if f.used and np.isfinite(f.threshold_mm)
+                }
             s = removal_scores(model_removal(pre, model), truth, pre.voxel_size_mm)
             out[f"{name}_dice"] = s.dice if s.dice is not None else 0.0
             out[f"{name}_precision"] = s.precision if s.precision is not None else float("nan")
@@ -197,8 +294,14 @@ def main() -> int:
         "--sources",
         nargs="+",
         choices=SOURCES,
-        default=list(DEFAULT_SOURCES),
-        help="default: the first four",
+        help="default: network, decision_true_depth (change-aware) or above_noise_true_depth "
+        "(updated), true_depth_noisy, true_depth",
+    )
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default="change_aware",
+        help="the row: the change-aware network, or the paper's monocular network",
     )
     parser.add_argument(
         "--oracle-tol-mm",
@@ -215,7 +318,8 @@ def main() -> int:
         help="give every frame its true pose (no tracking error): what tracking error costs",
     )
     args = parser.parse_args()
-    sources = tuple(args.sources)
+    sources = tuple(args.sources or DEFAULT_SOURCES[args.method])
+    check_sources(args.method, sources)
     cfg_path = args.config or args.run / "update_config.yaml"
     cfg = load_config_file(UpdateConfig, cfg_path) if cfg_path.is_file() else UpdateConfig()
     # One step that no frame could use is scored as "no update", as the workflow does.
@@ -230,6 +334,7 @@ def main() -> int:
             sources,
             args.oracle_tol_mm,
             args.true_poses,
+            args.method,
         )
         for k, figs in per_step.items():
             for name, value in figs.items():
@@ -240,6 +345,9 @@ def main() -> int:
         print(f"{name}_dice_mean: {np.mean(dices[name]):.3f}")
     print(f"cpu_simd: {cpu_simd()}")
     print(f"elapsed_s: {time.perf_counter() - t0:.1f}")
+    if "above_noise_true_depth" in sources and "true_depth_noisy" in sources:
+        floor = np.mean(dices["true_depth_noisy"]) - np.mean(dices["above_noise_true_depth"])
+        print(f"noise_floor_dice_cost: {floor:.3f}")
     if "true_depth" in sources and "true_depth_noisy" in sources:
         cost = np.mean(dices["true_depth"]) - np.mean(dices["true_depth_noisy"])
         print(f"noisy_carving_dice_cost: {cost:.3f}")

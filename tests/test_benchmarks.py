@@ -201,6 +201,47 @@ def test_bench_carve_oracle_sources_put_true_depth_where_the_network_decides() -
     np.testing.assert_array_equal(moved.T_world_from_cam, 2 * np.eye(4))
 
 
+def test_bench_carve_oracle_above_noise_sees_only_what_the_network_threshold_lets_through() -> None:
+    from chisel.depth_source import is_estimate, is_metric, wants_prior
+    from chisel.io.sequence import Frame
+
+    oracle = load_benchmark("bench_carve_oracle")
+    prior = np.full((4, 5), 20.0, np.float32)
+    true = prior.copy()
+    true[1, 1:4] = 30.0  # a cut 10 mm deep
+    true[2, 1:4] = 22.0  # and a shallow one, 2 mm
+    mask = np.ones((4, 5), bool)
+    mask[1, 3] = False  # an instrument over one pixel of the deep cut
+    source = oracle.TrueDepthAboveNoise({0: 3.0, 1: 1.5})
+    deep_only = np.where(true - prior > 3.0, true, prior)
+    deep_only[1, 3] = np.nan
+    out = source(Frame(0, np.eye(4), None, true, mask), prior_mm=prior)
+    np.testing.assert_array_equal(out, deep_only)
+    # A lower threshold lets the shallow cut through too; a frame the network's run did not
+    # use has no threshold and sees nothing.
+    np.testing.assert_array_equal(source(Frame(1, np.eye(4), None, true), prior_mm=prior), true)
+    np.testing.assert_array_equal(source(Frame(2, np.eye(4), None, true), prior_mm=prior), prior)
+    assert wants_prior(source) and is_metric(source) and is_estimate(source)
+
+
+@pytest.mark.parametrize(
+    ("method", "sources", "message"),
+    [
+        ("updated", ("network", "decision_true_depth"), "only with --method change_aware"),
+        ("updated", ("network", "network_oracle_reliable"), "only with --method change_aware"),
+        ("change_aware", ("network", "above_noise_true_depth"), "only with --method updated"),
+        ("updated", ("above_noise_true_depth", "true_depth"), "needs network too"),
+    ],
+)
+def test_bench_carve_oracle_refuses_a_source_the_row_cannot_drive(
+    method: str, sources: tuple[str, ...], message: str
+) -> None:
+    oracle = load_benchmark("bench_carve_oracle")
+    with pytest.raises(SystemExit, match=message):
+        oracle.check_sources(method, sources)
+    oracle.check_sources(method, oracle.DEFAULT_SOURCES[method])  # the defaults are accepted
+
+
 def test_bench_fidelity_figures_from_a_table() -> None:
     """The goal figures of bench_fidelity.py, from a two-step table written by hand."""
     fid = load_benchmark("bench_fidelity")
