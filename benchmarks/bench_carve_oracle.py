@@ -37,7 +37,8 @@ tracker's error costs. Prints each source's mean Dice, ``cpu_simd``, ``elapsed_s
 ``above_noise_true_depth``, when both run) and, last, ``noisy_carving_dice_cost``: the mean
 Dice of ``true_depth`` minus that of ``true_depth_noisy`` (when both run: ``--sources``).
 ``--config`` runs a variant of the update config instead of the run's. About 10-25 s per
-source and step on this 2-core machine.
+source and step on this 2-core machine for the change-aware row, 4 s for the monocular one
+(its depth is read, not inferred).
 
     .venv/bin/python benchmarks/bench_carve_oracle.py --run RUN/results/default --seeds 0-4 --steps 1
     .venv/bin/python benchmarks/bench_carve_oracle.py --run RUN/results/default --seeds 0-4 \
