@@ -2,9 +2,10 @@
 "changed", or the carving a noisy estimate gets.
 
 For each seed and step of a finished `table` run with the row (``--method``:
-``change_aware``, the default, or ``updated``, the paper's monocular row), the step is run
-again from that row's own model before it (the preoperative model at step 1), with the
-run's update config, once per depth source:
+``change_aware``, the default; ``updated``, the paper's monocular row; or ``updated_sweep``,
+the same network on the sweep-only model, whose removal is read on that model's grid), the
+step is run again from that row's own model before it (the preoperative model at step 1),
+with the run's update config, once per depth source:
 
 - ``network``: the row's own depth, run again: the per-patient change-aware network, or
   the monocular network's predictions the run stored (``depth/pred/step_KK``);
@@ -76,7 +77,9 @@ from sim.dataset import parse_seeds  # noqa: E402
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from host import cpu_simd  # noqa: E402
 
-METHODS = ("change_aware", "updated")
+METHODS = ("change_aware", "updated", "updated_sweep")
+MONOCULAR = ("updated", "updated_sweep")
+"""The rows whose depth is the monocular network's (stored in ``depth/pred/step_KK``)."""
 SOURCES = (
     "network",
     "decision_true_depth",
@@ -86,23 +89,25 @@ SOURCES = (
     "network_oracle_reliable",
 )
 ONLY_FOR = {
-    "decision_true_depth": "change_aware",
-    "network_oracle_reliable": "change_aware",
-    "above_noise_true_depth": "updated",
+    "decision_true_depth": ("change_aware",),
+    "network_oracle_reliable": ("change_aware",),
+    "above_noise_true_depth": MONOCULAR,
 }
 """Sources that need what only one kind of network gives: a change probability and a
 metric output (change-aware), or a change threshold measured from relative depth."""
 DEFAULT_SOURCES = {
     "change_aware": ("network", "decision_true_depth", "true_depth_noisy", "true_depth"),
     "updated": ("network", "above_noise_true_depth", "true_depth_noisy", "true_depth"),
+    "updated_sweep": ("network", "above_noise_true_depth", "true_depth_noisy", "true_depth"),
 }
 
 
 def check_sources(method: str, sources: tuple[str, ...]) -> None:
     """Refuse a source that ``method``'s network cannot drive, naming both."""
     for name in sources:
-        if ONLY_FOR.get(name, method) != method:
-            raise SystemExit(f"--sources {name}: only with --method {ONLY_FOR[name]}, not {method}")
+        if method not in ONLY_FOR.get(name, METHODS):
+            only = " or ".join(ONLY_FOR[name])
+            raise SystemExit(f"--sources {name}: only with --method {only}, not {method}")
     if "above_noise_true_depth" in sources and "network" not in sources:
         raise SystemExit(
             "--sources above_noise_true_depth needs network too (its frames' change thresholds)"
@@ -237,7 +242,11 @@ def seed_scores(
     The preoperative model, the preoperative label CT and the change-aware network are
     read once."""
     check_sources(method, sources)
-    pre = TsdfModel.load(seed_dir / "preop" / "model.npz")
+    # The sweep-only row starts from its own build, and its removal is read on its grid.
+    preop_path = (
+        seed_dir / "preop" / ("model_sweep.npz" if method == "updated_sweep" else "model.npz")
+    )
+    pre = TsdfModel.load(preop_path)
     ct = seed_dir / "phantom" / "ct"
     c0 = read_ct_volume(ct / "step_00_label.nii.gz", "label")
     net = (
@@ -248,9 +257,7 @@ def seed_scores(
     scores: dict[int, dict[str, float]] = {}
     for k in steps:
         start_path = (
-            seed_dir / "preop" / "model.npz"
-            if k == 1
-            else seed_dir / "base" / method / f"step_{k - 1:02d}" / "model.npz"
+            preop_path if k == 1 else seed_dir / "base" / method / f"step_{k - 1:02d}" / "model.npz"
         )
         if not start_path.is_file():
             raise SystemExit(
@@ -302,7 +309,8 @@ def main() -> int:
         "--method",
         choices=METHODS,
         default="change_aware",
-        help="the row: the change-aware network, or the paper's monocular network",
+        help="the row: the change-aware network, or the paper's monocular network on the "
+        "whole-CT model (updated) or on the sweep-only one (updated_sweep)",
     )
     parser.add_argument(
         "--oracle-tol-mm",

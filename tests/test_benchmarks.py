@@ -229,7 +229,8 @@ def test_bench_carve_oracle_above_noise_sees_only_what_the_network_threshold_let
     [
         ("updated", ("network", "decision_true_depth"), "only with --method change_aware"),
         ("updated", ("network", "network_oracle_reliable"), "only with --method change_aware"),
-        ("change_aware", ("network", "above_noise_true_depth"), "only with --method updated"),
+        ("change_aware", ("network", "above_noise_true_depth"), "only with --method updated or"),
+        ("updated_sweep", ("network", "decision_true_depth"), "only with --method change_aware"),
         ("updated", ("above_noise_true_depth", "true_depth"), "needs network too"),
     ],
 )
@@ -240,6 +241,7 @@ def test_bench_carve_oracle_refuses_a_source_the_row_cannot_drive(
     with pytest.raises(SystemExit, match=message):
         oracle.check_sources(method, sources)
     oracle.check_sources(method, oracle.DEFAULT_SOURCES[method])  # the defaults are accepted
+    oracle.check_sources("updated_sweep", ("network", "above_noise_true_depth"))
 
 
 def test_bench_fidelity_figures_from_a_table() -> None:
