@@ -97,8 +97,9 @@ ONLY_FOR = {
 metric output (change-aware), or a change threshold measured from relative depth."""
 DEFAULT_SOURCES = {
     "change_aware": ("network", "decision_true_depth", "true_depth_noisy", "true_depth"),
-    "updated": ("network", "above_noise_true_depth", "true_depth_noisy", "true_depth"),
-    "updated_sweep": ("network", "above_noise_true_depth", "true_depth_noisy", "true_depth"),
+    **dict.fromkeys(
+        MONOCULAR, ("network", "above_noise_true_depth", "true_depth_noisy", "true_depth")
+    ),
 }
 
 
@@ -112,6 +113,22 @@ def check_sources(method: str, sources: tuple[str, ...]) -> None:
         raise SystemExit(
             "--sources above_noise_true_depth needs network too (its frames' change thresholds)"
         )
+
+
+def true_depth(frame: Frame) -> np.ndarray:
+    """The frame's true depth, mm; a sequence without it cannot drive an oracle source."""
+    if frame.depth_mm is None:
+        raise SystemExit(f"frame {frame.index}: no true depth (a rendered sequence is needed)")
+    return frame.depth_mm
+
+
+def true_depth_where(frame: Frame, where: np.ndarray, prior_mm: np.ndarray) -> np.ndarray:
+    """The frame's true depth where ``where``, the prior (the model's render) elsewhere,
+    NaN at the pixels the frame's mask leaves out."""
+    out = np.where(where, true_depth(frame), prior_mm).astype(np.float32)
+    if frame.mask is not None:
+        out[~frame.mask] = np.nan
+    return out
 
 
 class DecisionTrueDepth:
@@ -129,16 +146,12 @@ class DecisionTrueDepth:
         self.network = network
 
     def __call__(self, frame: Frame, prior_mm: np.ndarray) -> np.ndarray:
-        if frame.depth_mm is None:
-            raise SystemExit(f"frame {frame.index}: no true depth (a rendered sequence is needed)")
+        true_depth(frame)
         self.network(frame, prior_mm=prior_mm)
         p = getattr(self.network, "last_change_probability", None)
         if p is None:
             raise SystemExit(f"{self.network!r} keeps no change probability")
-        out = np.where(p >= 0.5, frame.depth_mm, prior_mm).astype(np.float32)
-        if frame.mask is not None:
-            out[~frame.mask] = np.nan
-        return out
+        return true_depth_where(frame, p >= 0.5, prior_mm)
 
 
 class OracleReliable:
@@ -156,11 +169,10 @@ class OracleReliable:
         self.last_reliable_px: np.ndarray | None = None
 
     def __call__(self, frame: Frame, prior_mm: np.ndarray) -> np.ndarray:
-        if frame.depth_mm is None:
-            raise SystemExit(f"frame {frame.index}: no true depth (a rendered sequence is needed)")
+        depth_mm = true_depth(frame)
         out = self.network(frame, prior_mm=prior_mm)
         with np.errstate(invalid="ignore"):
-            self.last_reliable_px = np.abs(out - frame.depth_mm) <= self.tol_mm
+            self.last_reliable_px = np.abs(out - depth_mm) <= self.tol_mm
         return out
 
 
@@ -178,15 +190,10 @@ class TrueDepthAboveNoise:
         self.thresholds_mm = thresholds_mm
 
     def __call__(self, frame: Frame, prior_mm: np.ndarray) -> np.ndarray:
-        if frame.depth_mm is None:
-            raise SystemExit(f"frame {frame.index}: no true depth (a rendered sequence is needed)")
         threshold_mm = self.thresholds_mm.get(frame.index, np.inf)
         with np.errstate(invalid="ignore"):
-            seen = frame.depth_mm - prior_mm > threshold_mm
-        out = np.where(seen, frame.depth_mm, prior_mm).astype(np.float32)
-        if frame.mask is not None:
-            out[~frame.mask] = np.nan
-        return out
+            seen = true_depth(frame) - prior_mm > threshold_mm
+        return true_depth_where(frame, seen, prior_mm)
 
 
 class TrueDepthAsEstimate(GroundTruthDepth):
@@ -303,7 +310,7 @@ def main() -> int:
         nargs="+",
         choices=SOURCES,
         help="default: network, decision_true_depth (change-aware) or above_noise_true_depth "
-        "(updated), true_depth_noisy, true_depth",
+        "(monocular rows), true_depth_noisy, true_depth",
     )
     parser.add_argument(
         "--method",
@@ -328,7 +335,6 @@ def main() -> int:
     )
     args = parser.parse_args()
     sources = tuple(args.sources or DEFAULT_SOURCES[args.method])
-    check_sources(args.method, sources)
     cfg_path = args.config or args.run / "update_config.yaml"
     cfg = load_config_file(UpdateConfig, cfg_path) if cfg_path.is_file() else UpdateConfig()
     # One step that no frame could use is scored as "no update", as the workflow does.
