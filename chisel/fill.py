@@ -247,9 +247,9 @@ def confirm_fill(
     frames' own, hide tissue: :func:`occluded_frames`) do not count for each other: a
     network's depth is distorted across the whole frame when an instrument is in view,
     alike in the frames of one tool episode, so their agreement is not independent
-    evidence (docs/updater.md, "Frames with an instrument in view"). Sweep-built models only: a whole-CT model's
-    never-observed voxels lie outside the CT (``UpdateConfig.fill_confirmed``); its
-    detections are returned as they are.
+    evidence (docs/updater.md, "Frames with an instrument in view"). Sweep-built models
+    only: a whole-CT model's never-observed voxels lie outside the CT
+    (``UpdateConfig.fill_confirmed``); its detections are returned as they are.
     """
     if model.build != "sweep":
         return list(dets)
