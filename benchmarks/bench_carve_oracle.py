@@ -33,10 +33,13 @@ what the network's depth costs, ``decision_true_depth`` to ``true_depth_noisy`` 
 decision costs, ``above_noise_true_depth`` to ``true_depth_noisy`` what the network's noise
 floor alone would cost, ``true_depth_noisy`` to ``true_depth`` what the noisy carving's
 guards cost. ``--true-poses`` gives every frame its true pose (no tracking error): what the
-tracker's error costs. Prints each source's mean Dice, ``cpu_simd``, ``elapsed_s``,
-``noise_floor_dice_cost`` (mean Dice of ``true_depth_noisy`` minus that of
-``above_noise_true_depth``, when both run) and, last, ``noisy_carving_dice_cost``: the mean
-Dice of ``true_depth`` minus that of ``true_depth_noisy`` (when both run: ``--sources``).
+tracker's error costs; ``--true-poses translation`` (``rotation``) gives only the true
+camera centre (orientation), and ``--true-poses hand_eye`` takes away only the constant
+hand-eye error, keeping each frame's jitter (:func:`remove_tracking_error`). Prints each
+source's mean Dice, ``cpu_simd``, ``elapsed_s``, ``noise_floor_dice_cost`` (mean Dice of
+``true_depth_noisy`` minus that of ``above_noise_true_depth``, when both run) and, last,
+``noisy_carving_dice_cost``: the mean Dice of ``true_depth`` minus that of
+``true_depth_noisy`` (when both run: ``--sources``).
 ``--config`` runs a variant of the update config instead of the run's. About 10-25 s per
 source and step on this 2-core machine for the change-aware row, 4 s for the monocular one
 (its depth is read, not inferred).
@@ -62,6 +65,7 @@ sys.path.insert(0, str(ROOT))
 
 from chisel.batch import update_step  # noqa: E402
 from chisel.core.config import load_config_file  # noqa: E402
+from chisel.core.geometry import invert_rigid  # noqa: E402
 from chisel.depth_source import (  # noqa: E402
     GroundTruthDepth,
     SequenceDepth,
@@ -71,6 +75,7 @@ from chisel.eval.volume import model_removal, removal_scores, true_removal  # no
 from chisel.io.ct import read_ct_volume  # noqa: E402
 from chisel.io.sequence import Frame, Sequence  # noqa: E402
 from chisel.model import TsdfModel  # noqa: E402
+from chisel.registration import robust_mean_transform  # noqa: E402
 from chisel.update_config import UpdateConfig  # noqa: E402
 from sim.dataset import parse_seeds  # noqa: E402
 
@@ -95,6 +100,8 @@ ONLY_FOR = {
 }
 """Sources that need what only one kind of network gives: a change probability and a
 metric output (change-aware), or a change threshold measured from relative depth."""
+POSE_ERRORS = ("all", "translation", "rotation", "hand_eye")
+"""What ``--true-poses`` takes away from the tracked poses (:func:`remove_tracking_error`)."""
 DEFAULT_SOURCES = {
     "change_aware": ("network", "decision_true_depth", "true_depth_noisy", "true_depth"),
     **dict.fromkeys(
@@ -204,9 +211,39 @@ class TrueDepthAsEstimate(GroundTruthDepth):
 
 def with_true_pose(frame: Frame) -> Frame:
     """The frame as a tracker without error would report it."""
+    return dataclasses.replace(frame, T_world_from_cam=true_pose(frame))
+
+
+def true_pose(frame: Frame) -> np.ndarray:
+    """The frame's true ``T_world_from_cam`` (exits when the sequence has none)."""
     if frame.T_world_from_cam_true is None:
         raise SystemExit(f"frame {frame.index}: no true pose (a rendered sequence is needed)")
-    return dataclasses.replace(frame, T_world_from_cam=frame.T_world_from_cam_true)
+    return frame.T_world_from_cam_true
+
+
+def remove_tracking_error(frames: list[Frame], part: str) -> list[Frame]:
+    """The step's frames with ``part`` (:data:`POSE_ERRORS`) of the tracker's error taken away.
+
+    ``all``: the true pose; ``translation``: the true camera centre, the tracked
+    orientation; ``rotation``: the reverse; ``hand_eye``: the tracked pose with the step's
+    constant camera-side error E undone (``T_tracked @ E^-1``, E the robust mean of
+    ``T_true^-1 @ T_tracked`` over the frames), so each frame keeps its own jitter.
+    """
+    if part == "all":
+        return [with_true_pose(f) for f in frames]
+    if part == "hand_eye":
+        E = robust_mean_transform([invert_rigid(true_pose(f)) @ f.T_world_from_cam for f in frames])
+        undo = invert_rigid(E)
+        return [dataclasses.replace(f, T_world_from_cam=f.T_world_from_cam @ undo) for f in frames]
+    out = []
+    for f in frames:
+        T = f.T_world_from_cam.copy()
+        if part == "translation":
+            T[:3, 3] = true_pose(f)[:3, 3]
+        else:
+            T[:3, :3] = true_pose(f)[:3, :3]
+        out.append(dataclasses.replace(f, T_world_from_cam=T))
+    return out
 
 
 def make_source(
@@ -241,7 +278,7 @@ def seed_scores(
     cfg: UpdateConfig,
     sources: tuple[str, ...] = DEFAULT_SOURCES["change_aware"],
     oracle_tol_mm: float = 0.5,
-    true_poses: bool = False,
+    true_poses: str | None = None,
     method: str = "change_aware",
 ) -> dict[int, dict[str, float]]:
     """Removed-tissue scores of each of ``steps`` of one seed, run again with each source.
@@ -275,8 +312,8 @@ def seed_scores(
         truth = true_removal(c0.data, ck.data, c0.T_world_from_voxel, pre)
         seq = Sequence(seed_dir / "render" / f"step_{k:02d}")
         frames = [seq.frame(i) for i in range(len(seq))]
-        if true_poses:
-            frames = [with_true_pose(f) for f in frames]
+        if true_poses is not None:
+            frames = remove_tracking_error(frames, true_poses)
         pred_dir = seed_dir / "depth" / "pred" / f"step_{k:02d}"
         # The network's own run comes first: its frames' thresholds drive above_noise.
         thresholds_mm: dict[int, float] = {}
@@ -330,8 +367,11 @@ def main() -> int:
     )
     parser.add_argument(
         "--true-poses",
-        action="store_true",
-        help="give every frame its true pose (no tracking error): what tracking error costs",
+        nargs="?",
+        const="all",
+        choices=POSE_ERRORS,
+        help="take the tracker's error away: all of it (no value), the translation, the "
+        "rotation, or the constant hand-eye error alone (each frame's jitter kept)",
     )
     args = parser.parse_args()
     sources = tuple(args.sources or DEFAULT_SOURCES[args.method])

@@ -244,6 +244,48 @@ def test_bench_carve_oracle_refuses_a_source_the_row_cannot_drive(
     oracle.check_sources("updated_sweep", ("network", "above_noise_true_depth"))
 
 
+def test_bench_carve_oracle_takes_away_each_part_of_the_tracking_error() -> None:
+    """Frames tracked as T_true @ E @ J (sim.tracking's model), scipy rotations as truth."""
+    from scipy.spatial.transform import Rotation
+
+    from chisel.io.sequence import Frame
+
+    oracle = load_benchmark("bench_carve_oracle")
+    rng = np.random.default_rng(3)
+
+    def rigid(deg: float, mm: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * math.radians(deg)).as_matrix()
+        T[:3, 3] = rng.normal(size=3) * mm
+        return T
+
+    E = rigid(0.5, 0.5)  # a constant hand-eye error
+    true = [rigid(30.0, 20.0) for _ in range(9)]
+    jitter = [np.eye(4) if i % 3 else rigid(0.1, 0.2) for i in range(9)]  # 3 of 9 jitter
+    frames = [
+        Frame(i, T @ E @ J, T_world_from_cam_true=T)
+        for i, (T, J) in enumerate(zip(true, jitter, strict=True))
+    ]
+    parts = {p: oracle.remove_tracking_error(frames, p) for p in oracle.POSE_ERRORS}
+    for i, (f, T) in enumerate(zip(frames, true, strict=True)):
+        np.testing.assert_array_equal(parts["all"][i].T_world_from_cam, T)
+        np.testing.assert_array_equal(parts["translation"][i].T_world_from_cam[:3, 3], T[:3, 3])
+        np.testing.assert_array_equal(
+            parts["translation"][i].T_world_from_cam[:3, :3], f.T_world_from_cam[:3, :3]
+        )
+        np.testing.assert_array_equal(parts["rotation"][i].T_world_from_cam[:3, :3], T[:3, :3])
+        np.testing.assert_array_equal(
+            parts["rotation"][i].T_world_from_cam[:3, 3], f.T_world_from_cam[:3, 3]
+        )
+        # E is undone exactly (the median over frames ignores the jittered third), and each
+        # frame keeps its own jitter, carried through E: T @ E @ J @ E^-1.
+        np.testing.assert_allclose(
+            parts["hand_eye"][i].T_world_from_cam, T @ E @ jitter[i] @ np.linalg.inv(E), atol=1e-9
+        )
+    with pytest.raises(SystemExit, match="frame 0: no true pose"):
+        oracle.remove_tracking_error([Frame(0, np.eye(4))], "hand_eye")
+
+
 def test_bench_fidelity_figures_from_a_table() -> None:
     """The goal figures of bench_fidelity.py, from a two-step table written by hand."""
     fid = load_benchmark("bench_fidelity")
