@@ -105,7 +105,7 @@ def plan_step(
     for f, R in zip(frames, renders, strict=True):
         E = estimate_depth(depth_source, f, R)
         reliable.append(reliable_pixels(depth_source, f, np.shape(E)))
-        estimates.append(validate_estimate(E, f, camera, metric))
+        estimates.append(validate_estimate(E, f, camera, metric, cfg.occluder_margin_px))
     scales: list[float | None] = [None] * len(frames)
     F, seq_reg, step_cfg = None, None, cfg
     if cfg.register:

@@ -264,6 +264,7 @@ class ChiselUpdater:
             frame,
             self.camera,
             is_metric(self.depth_source),
+            self.cfg.occluder_margin_px,
         )
 
     def process(self, frame: Frame, keep_maps: bool = False) -> FrameReport:
