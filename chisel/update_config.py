@@ -36,15 +36,17 @@ class UpdateConfig:
     a scale and a shift, fitted robustly to the render per frame
     (:func:`chisel.change.shift_to_render`; how monocular networks are evaluated, Ranftl et
     al.); "scale" = a scale alone (the paper)."""
-    occluder_margin_px: float = 16.0
+    occluder_margin_px: float = 0.0
     """Pixels within this distance of an occluder in a frame's mask (a pixel it leaves out
     inside the view: an instrument) are left out too, for every depth source
-    (:func:`chisel.detect.occluder_margin`). A depth network's estimate bleeds across an
-    instrument's edge: beside the simulator's tools the monocular network's abs-rel was
-    0.25 within 2 px, 0.13 at 12-16 px and 0.11 at 16-24 px, against 0.065 at the same
-    pixels of the tool-free frames. With 16 px every step of seeds 0-4 and held-out 8-10
-    stays within issue 22's 10 % of the tool-free run (docs/updater.md). 0 = the mask as
-    given."""
+    (:func:`chisel.detect.occluder_margin`); 0 = the mask as given. A depth network's
+    estimate bleeds across an instrument's edge: beside the simulator's tools the
+    monocular network's abs-rel was 0.25 within 2 px and 0.13 at 12-16 px, against 0.065
+    at the same pixels without the tool. 16 px brought every step of seeds 0-4 and 8-10
+    within issue 22's 10 % of the tool-free run, but on a seed it had not seen (12) the
+    paper's row moved further from it (1.20-1.73x at steps 2-5 against 1.02-1.48x), and
+    the change-aware row on seed 3 too (1.13x against 1.08x): off by default
+    (docs/updater.md)."""
     max_points: int = 1500
     """About this many pixels (a regular stride) per frame in per-frame registration."""
     sequence_points: int = 500
