@@ -45,7 +45,7 @@ class UpdateConfig:
     at the same pixels without the tool. 16 px brought every step of seeds 0-4 and 8-10
     within issue 22's 10 % of the tool-free run, but on a seed it had not seen (12) the
     paper's row moved further from it (1.20-1.73x at steps 2-5 against 1.02-1.48x), and
-    the change-aware row on seed 3 too (1.13x against 1.08x): off by default
+    the change-aware row on seed 3 too (1.13x against 1.06x at step 2): off by default
     (docs/updater.md)."""
     max_points: int = 1500
     """About this many pixels (a regular stride) per frame in per-frame registration."""
