@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -157,7 +156,7 @@ class UpdateConfig:
             raise InvalidInputError(
                 "noisy_max_depth_mm", f"must be > 0 mm, got {self.noisy_max_depth_mm}"
             )
-        if not (math.isfinite(self.occluder_margin_px) and self.occluder_margin_px >= 0):
+        if self.occluder_margin_px < 0:  # NaN and infinity: check_fields
             raise InvalidInputError(
                 "occluder_margin_px", f"must be >= 0 pixels, got {self.occluder_margin_px}"
             )
