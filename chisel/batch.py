@@ -43,6 +43,7 @@ from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
 from chisel.registration import (
     check_result,
+    correction_z,
     register_global,
     robust_mean_transform,
     tracking_excess,
@@ -267,9 +268,13 @@ def _hand_eye(
             "reason": "no frame registered in the first pass",
         }  # fmt: skip
     F = robust_mean_transform(Fs)
+    # How well the frames determine F, for the report (docs/updater.md); None = they agree
+    # exactly. Gating on it was measured and refused (docs/results.md, thirty-fourth session).
+    z = [v if np.isfinite(v) else None for v in correction_z(F, Fs)]
     return F, {
         "ok": True, "frames": len(Fs), "fitness_median": fitness,
         "T_cam_from_corrected_cam": F.tolist(),
+        "z_rotation": z[0], "z_translation": z[1],
     }  # fmt: skip
 
 

@@ -308,6 +308,37 @@ def robust_mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
     return out
 
 
+def correction_z(F: np.ndarray, transforms: list[np.ndarray]) -> tuple[float, float]:
+    """How far the robust mean ``F`` of ``transforms`` stands from no correction, in standard
+    errors: (rotation, translation).
+
+    Each transform's deviation from F (rotation vector, translation) is one sample of the
+    scatter; with per-axis scatter sigma the median deviation length is 1.538 sigma (chi,
+    3 degrees of freedom) and the standard error of a median is 1.2533 sigma / sqrt(n).
+    Fewer than 3 transforms give no scatter to judge by: (0, 0); no scatter at all gives
+    inf (0 for an identity F). Under no true correction the ratio follows that chi
+    distribution: 3 is its 98th percentile.
+    """
+    from scipy.spatial.transform import Rotation
+
+    n = len(transforms)
+    if n < 3:
+        return 0.0, 0.0
+    Ts = np.stack(transforms)
+    dev = np.einsum("ij,njk->nik", np.linalg.inv(F), Ts)
+    rot_dev = np.linalg.norm(Rotation.from_matrix(dev[:, :3, :3]).as_rotvec(), axis=1)
+    shift_dev = np.linalg.norm(Ts[:, :3, 3] - F[:3, 3], axis=1)
+
+    def z(size: float, devs: np.ndarray) -> float:
+        se = 1.2533 * float(np.median(devs)) / 1.538 / np.sqrt(n)
+        if se <= 0.0:
+            return float("inf") if size > 0.0 else 0.0
+        return size / se
+
+    angle_rad = float(np.radians(rotation_angle_deg(F[:3, :3])))
+    return z(angle_rad, rot_dev), z(float(np.linalg.norm(F[:3, 3])), shift_dev)
+
+
 def tracking_excess(F: np.ndarray, cfg: RegistrationConfig) -> str:
     """Why the camera-side correction F is one the tracker cannot need ("" if it can)."""
     shift_mm, angle_deg = float(np.linalg.norm(F[:3, 3])), rotation_angle_deg(F[:3, :3])
