@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import test_updater_scenes as sc
 from scipy.spatial.transform import Rotation
 
+from chisel.batch import update_step
+from chisel.build import BuildConfig, build_preop_model
+from chisel.depth_source import CallableDepth
 from chisel.registration import correction_z, robust_mean_transform
 
 
@@ -64,30 +68,19 @@ def test_too_few_or_identical_corrections() -> None:
 
 
 def test_the_step_report_says_whether_the_frames_agree_on_the_hand_eye_correction() -> None:
-    from test_updater_scenes import (
-        bitten_mesh,
-        camera,
-        frames,
-        pose_error,
-        poses,
-        preop_poses,
-        tissue_mesh,
+    tissue, cam = sc.tissue_mesh(), sc.camera()
+    model = build_preop_model(
+        tissue, cam, sc.preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5)
     )
-
-    from chisel.batch import update_step
-    from chisel.build import BuildConfig, build_preop_model
-    from chisel.depth_source import CallableDepth
-
-    tissue, cam = tissue_mesh(), camera()
-    model = build_preop_model(tissue, cam, preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5))
-    P, src = poses(8, seed=2), CallableDepth(lambda f: f.depth_mm * 0.037)
+    bitten, P = sc.bitten_mesh(tissue), sc.poses(8, seed=2)
+    src = CallableDepth(lambda f: f.depth_mm * 0.037)
     # One constant 1 mm / 1 deg hand-eye error, exact depth up to scale: the frames agree.
-    same = np.stack([T @ pose_error(1.0, 1.0, seed=10) for T in P])
-    _, rep = update_step(model, cam, frames(bitten_mesh(tissue), cam, P, same), src)
+    same = np.stack([T @ sc.pose_error(1.0, 1.0, seed=10) for T in P])
+    _, rep = update_step(model, cam, sc.frames(bitten, cam, P, same), src)
     he = rep.sequence_registration["hand_eye"]
     assert he["z_rotation"] > 10.0 and he["z_translation"] > 10.0
     # Each frame off by its own 1 mm / 1 deg: their corrections scatter around none.
-    own = np.stack([T @ pose_error(1.0, 1.0, seed=10 + i) for i, T in enumerate(P)])
-    _, rep = update_step(model, cam, frames(bitten_mesh(tissue), cam, P, own), src)
+    own = np.stack([T @ sc.pose_error(1.0, 1.0, seed=10 + i) for i, T in enumerate(P)])
+    _, rep = update_step(model, cam, sc.frames(bitten, cam, P, own), src)
     he = rep.sequence_registration["hand_eye"]
     assert he["z_rotation"] < 3.0 and he["z_translation"] < 3.0
