@@ -317,7 +317,7 @@ def correction_z(F: np.ndarray, transforms: list[np.ndarray]) -> tuple[float, fl
     3 degrees of freedom) and the standard error of a median is 1.2533 sigma / sqrt(n).
     Fewer than 3 transforms give no scatter to judge by: (0, 0); no scatter at all gives
     inf (0 for an identity F). Under no true correction the ratio follows that chi
-    distribution: 3 is its 98th percentile.
+    distribution: 3 is its 97th percentile.
     """
     from scipy.spatial.transform import Rotation
 
