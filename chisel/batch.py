@@ -152,6 +152,9 @@ def _register_step(
         C, seq_reg = _sequence_registration(*args, cfg)
         F, he = _hand_eye(*args, C, cfg, solve_for_scale)
     seq_reg = {**seq_reg, "hand_eye": he}
+    if solve_for_scale and cfg.relative_hand_eye == "frame":
+        reason = "relative depth: every frame registered on its own (relative_hand_eye)"
+        return scales, None, {**seq_reg, "not_applied": reason}, cfg
     excess = None if F is None else tracking_excess(F, cfg.registration)
     if excess:
         # A monocular estimate whose shape differs from the model's pulls ICP to a

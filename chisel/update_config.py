@@ -53,6 +53,17 @@ class UpdateConfig:
     hand_eye_frames: int = 20
     """Batch mode: at most this many frames, evenly spaced, estimate the hand-eye
     correction F (a robust median: more frames add time, not accuracy)."""
+    relative_hand_eye: Literal["step", "frame"] = "step"
+    """Batch mode, an estimate whose scale is solved (a monocular network's): "step" = the
+    step's hand-eye correction F places every frame (beyond the tracking accuracy it is
+    rejected and every frame keeps its tracked pose, scale only); "frame" = F is reported
+    but not applied: each frame is registered on its own from its tracked pose, its own
+    correction gated by the tracking accuracy, the running mean of the accepted ones its
+    prior (as in streaming use). The network's F was never the true correction (its
+    rotation was worse after it at all 25 steps of seeds 0-4), and one decision for the
+    whole step flipped on a fraction of a degree between runs that differed only in
+    instruments in view; per-frame decisions average over the frames (docs/updater.md,
+    docs/results.md thirty-fifth session). Exact or metric depth: always "step"."""
     carve: Literal["deletion", "paper"] = "deletion"
     """How a change is carved: "deletion" = delete the first layer along a changed ray up to
     the next surface the model holds, fuse the new depth only where it holds nothing
@@ -145,6 +156,10 @@ class UpdateConfig:
             raise InvalidInputError(
                 "relative_depth",
                 f"expected 'scale' or 'scale_shift', got {self.relative_depth!r}",
+            )
+        if self.relative_hand_eye not in ("step", "frame"):
+            raise InvalidInputError(
+                "relative_hand_eye", f"expected 'step' or 'frame', got {self.relative_hand_eye!r}"
             )
         if self.carve not in ("deletion", "paper"):
             raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")

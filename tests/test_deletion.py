@@ -133,10 +133,14 @@ def test_paper_carving_writes_the_estimate_instead(scene: dict) -> None:
     assert np.all(new.tsdf[mid] > 0)
 
 
-def test_noisy_relative_depth_with_hand_eye_error_registers_or_falls_back(scene: dict) -> None:
+@pytest.mark.parametrize("relative_hand_eye", ["step", "frame"])
+def test_noisy_relative_depth_with_hand_eye_error_registers_or_falls_back(
+    scene: dict, relative_hand_eye: str
+) -> None:
     # Relative depth (unknown scale, 5 % per-frame scale error), 0.5 mm noise, and a
     # 1 mm / 1 deg hand-eye error on the tracked poses: the step must not fail, and the
-    # window is carved to within two voxels.
+    # window is carved to within two voxels, whether the step's correction places every
+    # frame or each frame is registered on its own.
     true = _poses(30, seed=3)
     F = _hand_eye_error(1.0, 1.0, seed=4)
     tracked = np.stack([T @ np.linalg.inv(F) for T in true])
@@ -148,7 +152,8 @@ def test_noisy_relative_depth_with_hand_eye_error_registers_or_falls_back(scene:
     def relative(f: Frame) -> np.ndarray:
         return (0.037 * scale_err[f.index] * (f.depth_mm + noise[f.index])).astype(np.float32)
 
-    new, rep = update_step(scene["model"], CAM, fr, CallableDepth(relative))
+    cfg = UpdateConfig(relative_hand_eye=relative_hand_eye)
+    new, rep = update_step(scene["model"], CAM, fr, CallableDepth(relative), cfg)
     d = rep.to_dict()
     assert len(d["frames_used"]) == len(fr)  # a frame that does not register falls back
     for f in d["frames"]:

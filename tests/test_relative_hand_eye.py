@@ -1,0 +1,73 @@
+"""UpdateConfig.relative_hand_eye: a relative estimate's frames placed by the step's
+hand-eye correction ("step") or each by its own registration ("frame")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import test_updater_scenes as sc
+from scipy.spatial.transform import Rotation
+
+from chisel.batch import update_step
+from chisel.build import BuildConfig, build_preop_model
+from chisel.core.errors import InvalidInputError
+from chisel.depth_source import CallableDepth, GroundTruthDepth
+from chisel.update_config import UpdateConfig
+
+
+def _deg(T: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(T[:3, :3]).magnitude()))
+
+
+@pytest.fixture(scope="module")
+def step_inputs() -> dict:
+    tissue, cam = sc.tissue_mesh(), sc.camera()
+    model = build_preop_model(
+        tissue, cam, sc.preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5)
+    )
+    P = sc.poses(12, seed=2)
+    E = sc.pose_error(1.0, 1.0, seed=10)  # one constant camera-side error: T_tracked = T E
+    tracked = np.stack([T @ E for T in P])
+    frames = sc.frames(sc.bitten_mesh(tissue), cam, P, tracked)
+    return {"model": model, "cam": cam, "frames": frames, "tracked": tracked, "E": E}
+
+
+def test_each_frame_undoes_the_hand_eye_error_on_its_own(step_inputs: dict) -> None:
+    s = step_inputs
+    relative = CallableDepth(lambda f: f.depth_mm * 0.037)
+    cfg = UpdateConfig(relative_hand_eye="frame")
+    _, rep = update_step(s["model"], s["cam"], s["frames"], relative, cfg)
+    assert "not_applied" in rep.sequence_registration
+    # The step's F is still estimated and reported, and is right (exact depth).
+    F = np.array(rep.sequence_registration["hand_eye"]["T_cam_from_corrected_cam"])
+    assert _deg(F @ s["E"]) < 0.2
+    left = []
+    for T, f in zip(s["tracked"], rep.to_dict()["frames"], strict=True):
+        reg = f["registration"] or {}
+        if reg.get("ok") and "rejected" not in reg:
+            # The frame's camera-side correction, against the error it was given.
+            C = np.linalg.inv(T) @ np.array(reg["T_model_from_est"]) @ T
+            left.append(_deg(C @ s["E"]))
+    assert len(left) >= 9 and np.median(left) < 0.3
+
+
+def test_the_step_correction_places_every_frame_by_default(step_inputs: dict) -> None:
+    s = step_inputs
+    relative = CallableDepth(lambda f: f.depth_mm * 0.037)
+    _, rep = update_step(s["model"], s["cam"], s["frames"], relative)
+    assert "not_applied" not in rep.sequence_registration
+    assert "rejected" not in rep.sequence_registration
+    F = np.array(rep.sequence_registration["hand_eye"]["T_cam_from_corrected_cam"])
+    assert _deg(F @ s["E"]) < 0.2
+
+
+def test_metric_depth_keeps_the_step_correction(step_inputs: dict) -> None:
+    s = step_inputs
+    cfg = UpdateConfig(relative_hand_eye="frame")
+    _, rep = update_step(s["model"], s["cam"], s["frames"], GroundTruthDepth(), cfg)
+    assert "not_applied" not in rep.sequence_registration
+
+
+def test_an_unknown_mode_is_named() -> None:
+    with pytest.raises(InvalidInputError, match="relative_hand_eye"):
+        UpdateConfig(relative_hand_eye="both")  # type: ignore[arg-type]
