@@ -148,21 +148,6 @@ class UpdateConfig:
         check_fields(self)
         if self.max_points < 100 or self.sequence_points < 100:
             raise InvalidInputError("max_points", "use at least 100 points per frame")
-        if self.frame_ransac not in ("always", "until_prior"):
-            raise InvalidInputError(
-                "frame_ransac", f"expected 'always' or 'until_prior', got {self.frame_ransac!r}"
-            )
-        if self.relative_depth not in ("scale", "scale_shift"):
-            raise InvalidInputError(
-                "relative_depth",
-                f"expected 'scale' or 'scale_shift', got {self.relative_depth!r}",
-            )
-        if self.relative_hand_eye not in ("step", "frame"):
-            raise InvalidInputError(
-                "relative_hand_eye", f"expected 'step' or 'frame', got {self.relative_hand_eye!r}"
-            )
-        if self.carve not in ("deletion", "paper"):
-            raise InvalidInputError("carve", f"expected 'deletion' or 'paper', got {self.carve!r}")
         if not 1 <= self.noisy_votes <= 255:
             raise InvalidInputError("noisy_votes", f"must be in [1, 255], got {self.noisy_votes}")
         if not self.noisy_layer_mm > 0:

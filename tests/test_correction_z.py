@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
+from chisel.core.geometry import rotation_angle_deg
 from chisel.depth_source import CallableDepth
 from chisel.registration import correction_z, robust_mean_transform
 
@@ -39,7 +40,7 @@ def test_z_is_the_size_over_the_standard_error_of_a_median(sigma_deg, sigma_mm) 
     Fs = _scattered(n, sigma_deg, sigma_mm, seed=1)
     F = robust_mean_transform(Fs)
     z_rot, z_shift = correction_z(F, Fs)
-    angle_deg = np.degrees(np.linalg.norm(Rotation.from_matrix(F[:3, :3]).as_rotvec()))
+    angle_deg = rotation_angle_deg(F)
     assert z_rot == pytest.approx(angle_deg / (1.2533 * sigma_deg / np.sqrt(n)), rel=0.05)
     assert z_shift == pytest.approx(
         np.linalg.norm(F[:3, 3]) / (1.2533 * sigma_mm / np.sqrt(n)), rel=0.05

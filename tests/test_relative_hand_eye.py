@@ -6,17 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import test_updater_scenes as sc
-from scipy.spatial.transform import Rotation
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
 from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import rotation_angle_deg
 from chisel.depth_source import CallableDepth, GroundTruthDepth
 from chisel.update_config import UpdateConfig
-
-
-def _deg(T: np.ndarray) -> float:
-    return float(np.degrees(Rotation.from_matrix(T[:3, :3]).magnitude()))
 
 
 @pytest.fixture(scope="module")
@@ -40,14 +36,14 @@ def test_each_frame_undoes_the_hand_eye_error_on_its_own(step_inputs: dict) -> N
     assert "not_applied" in rep.sequence_registration
     # The step's F is still estimated and reported, and is right (exact depth).
     F = np.array(rep.sequence_registration["hand_eye"]["T_cam_from_corrected_cam"])
-    assert _deg(F @ s["E"]) < 0.2
+    assert rotation_angle_deg(F @ s["E"]) < 0.2
     left = []
     for T, f in zip(s["tracked"], rep.to_dict()["frames"], strict=True):
         reg = f["registration"] or {}
         if reg.get("ok") and "rejected" not in reg:
             # The frame's camera-side correction, against the error it was given.
             C = np.linalg.inv(T) @ np.array(reg["T_model_from_est"]) @ T
-            left.append(_deg(C @ s["E"]))
+            left.append(rotation_angle_deg(C @ s["E"]))
     assert len(left) >= 9 and np.median(left) < 0.3
 
 
@@ -58,7 +54,7 @@ def test_the_step_correction_places_every_frame_by_default(step_inputs: dict) ->
     assert "not_applied" not in rep.sequence_registration
     assert "rejected" not in rep.sequence_registration
     F = np.array(rep.sequence_registration["hand_eye"]["T_cam_from_corrected_cam"])
-    assert _deg(F @ s["E"]) < 0.2
+    assert rotation_angle_deg(F @ s["E"]) < 0.2
 
 
 def test_metric_depth_keeps_the_step_correction(step_inputs: dict) -> None:
