@@ -36,7 +36,7 @@ from chisel.detect import (
     scale_free,
     validate_estimate,
 )
-from chisel.fill import confirm_fill
+from chisel.fill import confirm_fill, occluded_frames
 from chisel.fusion import check_pose_in_model
 from chisel.icp import icp_similarity
 from chisel.io.sequence import Frame
@@ -190,8 +190,10 @@ def update_step(
     hand_eye = HandEye()
     if plan.hand_eye is not None:
         hand_eye.F, hand_eye.fixed = plan.hand_eye, True
+    teaches = _teaching_frames(frames, plan.inputs, plan.hand_eye is None and step_cfg.register)
     dets = []
-    for inp in progress(plan.inputs) if progress is not None else plan.inputs:
+    inputs = progress(plan.inputs) if progress is not None else plan.inputs
+    for inp, teach in zip(inputs, teaches, strict=True):
         ctx = Context(
             camera,
             plan.renderer,
@@ -202,7 +204,8 @@ def update_step(
             hand_eye.may_retry(step_cfg.frame_ransac),
         )
         det = detect(inp, ctx)
-        hand_eye.learn(det)
+        if teach:
+            hand_eye.learn(det)
         dets.append(det)
     if cfg.change.min_views > 0:
         dets = confirm_changes(dets, camera, cfg.change)
@@ -217,6 +220,27 @@ def update_step(
         for f, d, inp in zip(frames, dets, plan.inputs, strict=True)
     ]
     return finish_step(new, reports, plan.sequence_registration, step_cfg)
+
+
+def _teaching_frames(
+    frames: list[Frame], inputs: list[FrameInput], frame_by_frame: bool
+) -> np.ndarray:
+    """(N,) bool: the frames whose own correction joins the running hand-eye estimate,
+    the prior of the frames after them, when the step registers frame by frame.
+
+    A frame with an instrument in view (:func:`chisel.fill.occluded_frames`) is still
+    registered, but does not teach: a monocular network's depth around a tool is off
+    frame-wide (its scale-and-shift fit to the render moved from 1.19 to 1.34 in the same
+    view with a tool in it), and a tool episode runs over consecutive frames, so its
+    corrections would steer the frames after it. No frame of the tool-free runs measured
+    is occluded by that rule, and they register as before (docs/results.md, thirty-sixth
+    session).
+    """
+    if not frame_by_frame or all(f.mask is None for f in frames):
+        return np.ones(len(frames), dtype=bool)
+    # Every frame was rendered for registration (plan_step).
+    renders = np.stack([cast(np.ndarray, inp.render_mm) for inp in inputs])
+    return ~occluded_frames([f.mask for f in frames], renders)
 
 
 def _try_scale(render_mm: np.ndarray, estimate: np.ndarray, cfg: UpdateConfig) -> float | None:

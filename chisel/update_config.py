@@ -59,7 +59,9 @@ class UpdateConfig:
     rejected and every frame keeps its tracked pose, scale only); "frame" = F is reported
     but not applied: each frame is registered on its own from its tracked pose, its own
     correction gated by the tracking accuracy, the running mean of the accepted ones its
-    prior (as in streaming use). The network's F was never the true correction (its
+    prior (as in streaming use); a frame with an instrument in view registers but does
+    not teach that mean (:func:`chisel.batch._teaching_frames`). The network's F was
+    never the true correction (its
     rotation was worse after it at all 25 steps of seeds 0-4), and one decision for the
     whole step flipped on a fraction of a degree between runs that differed only in
     instruments in view; per-frame decisions average over the frames (docs/updater.md,
