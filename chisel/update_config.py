@@ -61,11 +61,11 @@ class UpdateConfig:
     correction gated by the tracking accuracy, the running mean of the accepted ones its
     prior (as in streaming use); a frame with an instrument in view registers but does
     not teach that mean (:func:`chisel.batch._teaching_frames`). The network's F was
-    never the true correction (its
-    rotation was worse after it at all 25 steps of seeds 0-4), and one decision for the
-    whole step flipped on a fraction of a degree between runs that differed only in
-    instruments in view; per-frame decisions average over the frames (docs/updater.md,
-    docs/results.md thirty-fifth session). Exact or metric depth: always "step"."""
+    never the true correction (its rotation was worse after it at all 25 steps of seeds
+    0-4), and one decision for the whole step flipped on a fraction of a degree between
+    runs that differed only in instruments in view; per-frame decisions average over the
+    frames (docs/updater.md, docs/results.md thirty-fifth and thirty-sixth sessions).
+    Exact or metric depth: always "step"."""
     carve: Literal["deletion", "paper"] = "deletion"
     """How a change is carved: "deletion" = delete the first layer along a changed ray up to
     the next surface the model holds, fuse the new depth only where it holds nothing
