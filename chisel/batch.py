@@ -236,9 +236,10 @@ def _teaching_frames(
     is occluded by that rule, and they register as before (docs/results.md, thirty-sixth
     session).
     """
-    if not frame_by_frame or all(f.mask is None for f in frames):
+    if not frame_by_frame:
         return np.ones(len(frames), dtype=bool)
-    # Every frame was rendered for registration (plan_step).
+    # Every frame was rendered for registration (plan_step); occluded_frames answers
+    # "none" itself when no frame has a mask.
     renders = np.stack([cast(np.ndarray, inp.render_mm) for inp in inputs])
     return ~occluded_frames([f.mask for f in frames], renders)
 
