@@ -128,3 +128,43 @@ def test_mesh_arrays_refuse_bad_meshes() -> None:
         mesh_arrays(np.full((3, 3), np.nan), np.array([[0, 1, 2]]))
     with pytest.raises(InvalidInputError, match=r"\(F>0, 3\) faces"):
         mesh_arrays(v, np.zeros((0, 3), int))
+
+
+def test_surface_hits_match_analytic_spheres_and_trimesh() -> None:
+    """Every crossing along a ray: two disjoint spheres in closed form, and a torus against
+    trimesh's own ray-triangle intersector (an independent implementation)."""
+    from trimesh.ray.ray_triangle import RayMeshIntersector
+
+    from chisel.core.raycast import SurfaceQueries
+
+    a = trimesh.creation.icosphere(5, radius=5.0)
+    b = trimesh.creation.icosphere(5, radius=3.0)
+    b.apply_translation([20.0, 0.0, 0.0])
+    q = SurfaceQueries.from_trimesh(trimesh.util.concatenate([a, b]))
+    # Along +x from x = -20, through a vertex-free line: spheres at [-5, 5] and [17, 23].
+    h = q.hits(np.array([[-20.0, 1e-3, 2e-3]]), np.array([[1.0, 0.0, 0.0]]), 5)
+    np.testing.assert_allclose(h[0, :4], [15.0, 25.0, 37.0, 43.0], atol=0.02)
+    assert np.isinf(h[0, 4])
+    # From inside the first sphere: its back face, then the second sphere.
+    h = q.hits(np.array([[0.0, 1e-3, 2e-3]]), np.array([[1.0, 0.0, 0.0]]), 2)
+    np.testing.assert_allclose(h[0], [5.0, 17.0], atol=0.02)
+
+    torus = trimesh.creation.torus(major_radius=10.0, minor_radius=3.0)
+    q = SurfaceQueries.from_trimesh(torus)
+    rng = np.random.default_rng(1)
+    origins = np.column_stack([rng.uniform(-2, 2, 200), rng.uniform(-2, 2, 200),
+                               np.full(200, 0.3)])  # fmt: skip
+    dirs = rng.normal(size=(200, 3)) * [1.0, 1.0, 0.15]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    ours = q.hits(origins, dirs, 4)
+    locs, ray_idx, _ = RayMeshIntersector(torus).intersects_location(
+        origins, dirs, multiple_hits=True
+    )
+    for i in range(200):
+        t = np.sort(np.linalg.norm(locs[ray_idx == i] - origins[i], axis=1))
+        t = t[np.diff(t, prepend=-1.0) > 1e-4][:4]
+        np.testing.assert_allclose(ours[i, : len(t)], t, atol=1e-3)
+        assert np.all(np.isinf(ours[i, len(t) :]))
+    assert (np.isfinite(ours).sum(axis=1) >= 2).sum() > 150  # most rays cross the ring
+    with pytest.raises(InvalidInputError, match="n"):
+        q.hits(origins, dirs, 0)

@@ -185,6 +185,37 @@ class SurfaceQueries:
         )
         return self.scene.cast_rays(_tensor(rays.astype(np.float32)))["t_hit"].numpy()
 
+    def hits(self, origins_mm: np.ndarray, directions: np.ndarray, n: int) -> np.ndarray:
+        """Distances along each unit direction to its first ``n`` surface crossings, mm.
+
+        origins_mm, directions : (N, 3) float. Returns (N, n) float32, ascending per ray,
+        inf where a ray crosses fewer surfaces. From a cavity of a closed tissue surface,
+        crossing 0 is the surface seen, 1 the back of that layer, 2 the next surface behind
+        it. A ray through an edge or a vertex shared by several triangles is reported by
+        Open3D once per triangle: crossings closer than 1e-4 mm count once.
+        """
+        if n < 1:
+            raise InvalidInputError("n", f"must be >= 1, got {n}")
+        rays = np.concatenate(
+            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
+        )
+        out = np.full((len(rays), n), np.inf, np.float32)
+        if len(rays) == 0:
+            return out
+        res = self.scene.list_intersections(_tensor(rays.astype(np.float32)))
+        ray = res["ray_ids"].numpy().astype(np.int64)
+        t = res["t_hit"].numpy()
+        order = np.lexsort((t, ray))
+        ray, t = ray[order], t[order]
+        repeat = np.zeros(len(t), bool)
+        repeat[1:] = (ray[1:] == ray[:-1]) & (t[1:] - t[:-1] < 1e-4)
+        ray, t = ray[~repeat], t[~repeat]
+        first = np.searchsorted(ray, ray, side="left")
+        rank = np.arange(len(ray)) - first
+        keep = rank < n
+        out[ray[keep], rank[keep]] = t[keep]
+        return out
+
     def first_hit_face(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Index of the first triangle hit along each ray, -1 on a miss: (N,) int64."""
         rays = np.concatenate(
