@@ -331,3 +331,42 @@ def test_bench_fidelity_figures_from_a_table() -> None:
     assert not fid.meets("change_aware_mask_recall_min", 0.8)  # 0.85 there, 0.7 for updated
     assert fid.meets("updated_mask_recall_min", 0.8)
     assert fid.parse_seeds("0-2,5") == [0, 1, 2, 5]
+
+
+def test_bench_change_bounds_next_surface_and_figures_against_closed_forms() -> None:
+    """The next surface behind a layer is the far slab's face; each figure of a frame with
+    a known change takes the value worked out by hand."""
+    import trimesh
+
+    from chisel.core.geometry import Camera
+    from chisel.core.raycast import SurfaceQueries
+
+    bench = load_benchmark("bench_change_bounds")
+    near_slab = trimesh.creation.box(bounds=[[-50, -50, 10], [50, 50, 12]])
+    far_slab = trimesh.creation.box(bounds=[[-50, -50, 20], [50, 50, 25]])
+    surface = SurfaceQueries.from_trimesh(trimesh.util.concatenate([near_slab, far_slab]))
+    camera = Camera(width=32, height=24, K=np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]]))
+    z = bench.next_surface_depth(surface, camera.rays_cam(), np.eye(4))
+    np.testing.assert_allclose(z, 20.0, atol=1e-3)  # z-depth of the far slab's face
+    alone = SurfaceQueries.from_trimesh(near_slab)
+    assert np.all(np.isnan(bench.next_surface_depth(alone, camera.rays_cam(), np.eye(4))))
+
+    # A 40x40 frame at 10 mm; a 10x10 window opened to 20 mm (the target at the tracked
+    # pose); the image shows the window shifted by 2 px (the tracking error).
+    prior = np.full((40, 40), 10.0, np.float32)
+    target = prior.copy()
+    target[15:25, 15:25] = 20.0
+    image = prior.copy()
+    image[15:25, 17:27] = 20.0
+    nxt = np.full((40, 40), 20.0, np.float32)
+    label, label_true = target > prior + 1.0, image > prior + 1.0
+    f = bench.frame_figures(prior, nxt, target, image, label, label_true)
+    near = 26 * 26  # the window dilated by 8 px
+    assert f["label_iou_tracked_true"] == pytest.approx(80 / 120)
+    assert f["label_recall_true_of_tracked"] == pytest.approx(0.8)
+    assert f["next_layer_within_0p5mm"] == 1.0
+    assert f["prior_near_abs_rel"] == pytest.approx(100 * 0.5 / near)
+    # 20 pixels too deep (10/10 off) and 20 too shallow (10/20 off) near the window.
+    assert f["image_exact_near_abs_rel"] == pytest.approx((20 * 1.0 + 20 * 0.5) / near)
+    assert f["next_layer_where_changed_near_abs_rel"] == 0.0
+    assert f["next_layer_best_near_abs_rel"] == 0.0
