@@ -118,6 +118,14 @@ def _tensor(a: np.ndarray) -> o3d.core.Tensor:
     return o3d.core.Tensor.from_numpy(np.ascontiguousarray(a))
 
 
+def _rays(origins_mm: np.ndarray, directions: np.ndarray) -> o3d.core.Tensor:
+    """(N, 6) float32 Open3D rays (origin, direction) from (N, 3) origins and directions."""
+    rays = np.concatenate(
+        [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
+    )
+    return _tensor(rays.astype(np.float32))
+
+
 class SurfaceQueries:
     """Open3D ``RaycastingScene`` queries against one triangle mesh in world mm: the one
     wrapper that the evaluation, the simulator's clearance checks, the phantoms' CT
@@ -180,10 +188,7 @@ class SurfaceQueries:
 
         origins_mm, directions : (N, 3) float. Returns (N,) float32.
         """
-        rays = np.concatenate(
-            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
-        )
-        return self.scene.cast_rays(_tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        return self.scene.cast_rays(_rays(origins_mm, directions))["t_hit"].numpy()
 
     def hits(self, origins_mm: np.ndarray, directions: np.ndarray, n: int) -> np.ndarray:
         """Distances along each unit direction to its first ``n`` surface crossings, mm.
@@ -196,13 +201,11 @@ class SurfaceQueries:
         """
         if n < 1:
             raise InvalidInputError("n", f"must be >= 1, got {n}")
-        rays = np.concatenate(
-            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
-        )
+        rays = _rays(origins_mm, directions)
         out = np.full((len(rays), n), np.inf, np.float32)
         if len(rays) == 0:
             return out
-        res = self.scene.list_intersections(_tensor(rays.astype(np.float32)))
+        res = self.scene.list_intersections(rays)
         ray = res["ray_ids"].numpy().astype(np.int64)
         t = res["t_hit"].numpy()
         order = np.lexsort((t, ray))
@@ -218,10 +221,7 @@ class SurfaceQueries:
 
     def first_hit_face(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Index of the first triangle hit along each ray, -1 on a miss: (N,) int64."""
-        rays = np.concatenate(
-            [np.reshape(origins_mm, (-1, 3)), np.reshape(directions, (-1, 3))], axis=1
-        )
-        hit = self.scene.cast_rays(_tensor(rays.astype(np.float32)))
+        hit = self.scene.cast_rays(_rays(origins_mm, directions))
         ids = hit["primitive_ids"].numpy().astype(np.int64)
         ids[~np.isfinite(hit["t_hit"].numpy())] = -1
         return ids
