@@ -50,8 +50,9 @@ from chisel.registration import (
 )
 from chisel.render import ModelRenderer
 from chisel.reports import StepReport
+from chisel.shading import step_correction
 from chisel.update_config import UpdateConfig
-from chisel.updater import finish_step, fuse
+from chisel.updater import finish_step, fuse, shading_translation_of
 
 log = logging.getLogger(__name__)
 
@@ -98,10 +99,24 @@ def plan_step(
     ]
     renderer = ModelRenderer(model)
     renders: list[np.ndarray | None] = [None] * len(frames)
-    if cfg.register or wants_prior(depth_source):
-        # M_t at every tracked pose: registration's reference, and the prior handed to a
-        # depth source that wants one (the change-aware network).
+    if cfg.register or cfg.shading_align or wants_prior(depth_source):
+        # M_t at every tracked pose: registration's reference, the shading's prediction,
+        # and the prior handed to a depth source that wants one (the change-aware network).
         renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
+    if cfg.shading_align and renders[0] is not None:
+        rendered = cast(list[np.ndarray], renders)
+        shifts = [
+            shading_translation_of(f, R, camera, cfg) for f, R in zip(frames, rendered, strict=True)
+        ]
+        found = [t for t in shifts if t is not None]
+        if found:
+            F_shading = step_correction(found)
+            log.info(
+                "shading: step correction %s mm from %d of %d frames",
+                F_shading[:3, 3].round(3), len(found), len(frames),
+            )  # fmt: skip
+            poses = [T @ F_shading for T in poses]
+            renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
     estimates, reliable = [], []
     for f, R in zip(frames, renders, strict=True):
         E = estimate_depth(depth_source, f, R)

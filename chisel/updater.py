@@ -50,9 +50,25 @@ from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
 from chisel.render import ModelRenderer
 from chisel.reports import FrameReport, StepReport
+from chisel.shading import shading_translation, step_correction
 from chisel.update_config import UpdateConfig
 
 log = logging.getLogger(__name__)
+
+
+def shading_translation_of(
+    frame: Frame, render_mm: np.ndarray, camera: Camera, cfg: UpdateConfig
+) -> np.ndarray | None:
+    """The frame's shading translation under ``cfg`` (:func:`chisel.shading.
+    shading_translation`), or None (no RGB, or no shift passed the gate)."""
+    if frame.rgb is None:
+        return None
+    t = shading_translation(
+        np.asarray(frame.rgb), render_mm, camera, frame.mask,
+        max_shift_px=cfg.shading_max_shift_px, min_ncc=cfg.shading_min_ncc,
+    )  # fmt: skip
+    log.debug("frame %d: shading translation %s", frame.index, t)
+    return t
 
 
 def is_precise(threshold_mm: float, cfg: UpdateConfig, estimate: bool = False) -> bool:
@@ -217,6 +233,7 @@ class ChiselUpdater:
         self._votes: np.ndarray | None = None
         self._frames: list[FrameReport] = []
         self._hand_eye = HandEye()
+        self._shading: list[np.ndarray] = []
 
     def begin_step(self, hand_eye: np.ndarray | None = None, fixed: bool = False) -> None:
         """Start a surgical step: M_t is the model as it is now.
@@ -229,6 +246,7 @@ class ChiselUpdater:
         self._reset = np.zeros(self.model.shape, dtype=np.uint8)
         self._votes = np.zeros(self.model.shape, dtype=np.uint8)
         self._frames = []
+        self._shading = []
         if hand_eye is not None:
             self._hand_eye.F = check_rigid(hand_eye, "hand_eye")
         self._hand_eye.fixed = fixed
@@ -322,6 +340,15 @@ class ChiselUpdater:
         the pixels its source declared reliable (read on the thread that called it)."""
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
         R = self.renderer.render(self.camera, T)
+        if self.cfg.shading_align:
+            # the batch's step correction, from the frames seen so far (one worker thread
+            # prepares the frames in order)
+            t = shading_translation_of(frame, R, self.camera, self.cfg)
+            if t is not None:
+                self._shading.append(t)
+            if self._shading:
+                T = T @ step_correction(self._shading)
+                R = self.renderer.render(self.camera, T)
         E = self.estimate(frame, R)
         return FrameInput(
             frame, T, E, R, reliable=reliable_pixels(self.depth_source, frame, E.shape)

@@ -1,0 +1,221 @@
+"""Aligning the model's render to the frame by shading: a pose signal with no depth network.
+
+An endoscope carries its light at the lens, so the radiance of a matte surface seen in
+the frame falls as ``cos(theta) / r^2`` (theta between the surface normal and the ray,
+r the distance along it). The model's depth render at a pose predicts that pattern from
+geometry alone; where the pose is off by the tracker's error, the frame's pattern lies
+shifted from the prediction. The shift is found by a masked normalised cross-correlation
+(every integer shift in a window at once, by FFT) of the high-passed log luminance and
+the high-passed log shading, and converted into the camera-side sideways translation that
+moves the render onto the frame at the depth it looks at; a step's frames share one
+correction, their median. Unlike registration of an estimate to the model, no network's
+shape error can bias it (docs/results.md, thirty-eighth and thirty-ninth sessions).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from chisel.core.errors import InvalidInputError
+from chisel.core.geometry import Camera
+
+# sRGB-like encoding of the simulator's and most endoscopes' frames: undone before the
+# log so that luminance ratios are radiance ratios.
+DISPLAY_GAMMA = 2.2
+# Below this mean 8-bit value a pixel is mostly sensor floor: no shading signal.
+DARK_LEVEL = 0.5
+# A shift must be supported by at least this share of the frame's pixels.
+MIN_OVERLAP_FRACTION = 0.1
+
+
+@dataclass(frozen=True)
+class ShadingShift:
+    """The image shift that best aligns the render's shading with the frame.
+
+    dx_px, dy_px : the frame's pixel u shows what the render shows at u + (dx, dy).
+    ncc : the masked normalised cross-correlation at that shift (-1..1); 0 with no shift
+    found. n_px : pixels that supported it.
+    """
+
+    dx_px: int
+    dy_px: int
+    ncc: float
+    n_px: int
+
+
+def log_shading(depth_mm: np.ndarray, rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """log(cos / r^2) of a light at the camera centre, from a z-depth map.
+
+    depth_mm : (H, W) z-depth, NaN = no surface; rays_cam : (H, W, 3) rays with z = 1
+    (``Camera.rays_cam()``). Returns ((H, W) float32 log shading, (H, W) bool valid):
+    normals from central differences of the back-projected points, so the border and
+    pixels beside a hole are invalid.
+    """
+    z = np.asarray(depth_mm, dtype=np.float64)
+    valid = np.isfinite(z) & (z > 0)
+    P = np.where(valid, z, 0.0)[..., None] * np.asarray(rays_cam, dtype=np.float64)
+    du = np.zeros_like(P)
+    dv = np.zeros_like(P)
+    du[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dv[1:-1] = P[2:] - P[:-2]
+    n = np.cross(du, dv)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    r = np.maximum(np.linalg.norm(P, axis=-1), 1e-6)
+    # Grazing pixels would send the log to -inf; the floor keeps them in the pattern.
+    cos = np.clip(np.abs((n * P).sum(-1)) / r, 0.05, 1.0)
+    ok = valid.copy()
+    ok[:, 1:-1] &= valid[:, 2:] & valid[:, :-2]
+    ok[1:-1] &= valid[2:] & valid[:-2]
+    ok[:, [0, -1]] = False
+    ok[[0, -1]] = False
+    return np.where(ok, np.log(cos) - 2.0 * np.log(r), 0.0).astype(np.float32), ok
+
+
+def log_luminance(rgb: np.ndarray) -> np.ndarray:
+    """(H, W) float32 log of the frame's linear luminance (gamma undone), from uint8 RGB."""
+    mean = np.asarray(rgb, dtype=np.float32).mean(axis=-1)
+    return (DISPLAY_GAMMA * np.log(mean + 1.0)).astype(np.float32)
+
+
+def high_pass(
+    image: np.ndarray, valid: np.ndarray, sigma_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` minus its masked Gaussian mean (normalised convolution): albedo and the
+    light's fall-off vary slowly, the geometry's shading does not. Pixels whose
+    neighbourhood is mostly invalid become invalid. Returns (float32 image, bool valid)."""
+    m = valid.astype(np.float32)
+    x = np.where(valid, image, 0.0).astype(np.float32)
+    w = cv2.GaussianBlur(m, (0, 0), sigma_px)
+    b = cv2.GaussianBlur(x, (0, 0), sigma_px)
+    keep = valid & (w > 0.3)
+    return np.where(keep, x - b / np.maximum(w, 1e-6), 0.0).astype(np.float32), keep
+
+
+def masked_ncc(
+    a: np.ndarray, ma: np.ndarray, b: np.ndarray, mb: np.ndarray, max_shift_px: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Masked normalised cross-correlation of ``a`` with ``b`` shifted, for every integer
+    shift d with |dx|, |dy| <= max_shift_px (Padfield, "Masked object registration in the
+    Fourier domain", 2012): ncc[dy + S, dx + S] compares a(u) with b(u + d) over the pixels
+    where both masks hold. Returns ((2S+1, 2S+1) float64 ncc, NaN where undefined;
+    (2S+1, 2S+1) overlap pixel counts)."""
+    S = int(max_shift_px)
+    H, W = a.shape
+    shape = (H + S, W + S)
+    fa = ma.astype(np.float64)
+    fb = mb.astype(np.float64)
+    a = np.where(ma, a, 0.0).astype(np.float64)
+    b = np.where(mb, b, 0.0).astype(np.float64)
+
+    def spectrum(x: np.ndarray) -> np.ndarray:
+        return np.fft.rfft2(x, s=shape)
+
+    A = {k: np.conj(spectrum(x)) for k, x in (("m", fa), ("a", a), ("aa", a * a))}
+    B = {k: spectrum(x) for k, x in (("m", fb), ("b", b), ("bb", b * b))}
+
+    def corr(ka: str, kb: str) -> np.ndarray:
+        # c(d) = sum_u f(u) g(u + d); circular index d mod shape, no wrap for |d| <= S.
+        c = np.fft.irfft2(A[ka] * B[kb], s=shape)
+        rows = np.r_[np.arange(shape[0] - S, shape[0]), np.arange(0, S + 1)]
+        cols = np.r_[np.arange(shape[1] - S, shape[1]), np.arange(0, S + 1)]
+        return c[np.ix_(rows, cols)]
+
+    n = np.rint(corr("m", "m"))
+    sa, sb = corr("a", "m"), corr("m", "b")
+    saa, sbb, sab = corr("aa", "m"), corr("m", "bb"), corr("a", "b")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = sab - sa * sb / n
+        var = (saa - sa * sa / n) * (sbb - sb * sb / n)
+        ncc = np.where((n > 0) & (var > 0), cov / np.sqrt(var), np.nan)
+    return ncc, n.astype(np.int64)
+
+
+def shading_shift(
+    rgb: np.ndarray,
+    render_mm: np.ndarray,
+    camera: Camera,
+    mask: np.ndarray | None = None,
+    max_shift_px: int = 16,
+    sigma_px: float = 12.0,
+) -> ShadingShift:
+    """The integer image shift aligning the render's shading with the frame's luminance.
+
+    rgb : (H, W, 3) uint8 frame; render_mm : (H, W) z-depth of the model at the pose to
+    correct, NaN = none; mask : the frame's valid pixels (None = all). A frame with too
+    little overlap at every shift gives (0, 0) with ncc 0.
+    """
+    H, W = camera.height, camera.width
+    if render_mm.shape != (H, W) or np.asarray(rgb).shape[:2] != (H, W):
+        raise InvalidInputError(
+            "shading_shift",
+            f"frame {np.asarray(rgb).shape[:2]} and render {render_mm.shape} must both be "
+            f"the camera's {(H, W)}",
+        )
+    lum = log_luminance(rgb)
+    seen = lum > DISPLAY_GAMMA * np.log(1.0 + DARK_LEVEL)
+    if mask is not None:
+        seen &= mask
+    a, ma = high_pass(lum, seen, sigma_px)
+    s, ms = log_shading(render_mm, camera.rays_cam())
+    b, mb = high_pass(s, ms, sigma_px)
+    ncc, n = masked_ncc(a, ma, b, mb, max_shift_px)
+    ncc = np.where(n >= MIN_OVERLAP_FRACTION * H * W, ncc, np.nan)
+    if not np.isfinite(ncc).any():
+        return ShadingShift(0, 0, 0.0, 0)
+    iy, ix = np.unravel_index(np.nanargmax(ncc), ncc.shape)
+    S = int(max_shift_px)
+    return ShadingShift(int(ix) - S, int(iy) - S, float(ncc[iy, ix]), int(n[iy, ix]))
+
+
+def translation_for_shift(
+    camera: Camera, dx_px: float, dy_px: float, depth_mm: float
+) -> np.ndarray:
+    """(4, 4) camera-side correction C (``T_corrected = T @ C``, a pure sideways
+    translation): surfaces at ``depth_mm`` that the camera at ``T`` saw at u + (dx, dy)
+    the corrected camera sees at u. The tracker's errors at an endoscope's working
+    distance are mostly translation: 0.2 mm of jitter at 10 mm moves the view as much as
+    1.1 deg of rotation."""
+    C = np.eye(4)
+    C[0, 3] = dx_px * depth_mm / camera.fx
+    C[1, 3] = dy_px * depth_mm / camera.fy
+    return C
+
+
+def shading_translation(
+    rgb: np.ndarray,
+    render_mm: np.ndarray,
+    camera: Camera,
+    mask: np.ndarray | None = None,
+    max_shift_px: int = 16,
+    sigma_px: float = 12.0,
+    min_ncc: float = 0.1,
+) -> np.ndarray | None:
+    """One frame's camera-side sideways translation (3,) mm that moves the render onto
+    its shading (:func:`translation_for_shift` at the render's median depth), or None
+    when the frame gives none: the best shift is weaker than ``min_ncc``, on the search
+    window's edge (the true one may lie beyond it, or the match is spurious), or the
+    render holds no surface."""
+    sh = shading_shift(rgb, render_mm, camera, mask, max_shift_px, sigma_px)
+    if sh.ncc < min_ncc or max(abs(sh.dx_px), abs(sh.dy_px)) >= max_shift_px:
+        return None
+    finite = np.isfinite(render_mm)
+    if not finite.any():
+        return None
+    depth_mm = float(np.median(render_mm[finite]))
+    return translation_for_shift(camera, sh.dx_px, sh.dy_px, depth_mm)[:3, 3]
+
+
+def step_correction(translations: list[np.ndarray]) -> np.ndarray:
+    """(4, 4) camera-side correction F (``T_corrected = T_tracked @ F``) of a step: the
+    per-axis median of its frames' shading translations. The hand-eye error is the same
+    in every frame of a step and the jitter is not: F takes the first, and a frame's own
+    shift, which holds its jitter too, is not applied (turning every frame onto its own
+    shading made the change-aware row 5 % worse in the table; docs/results.md,
+    thirty-ninth session). Identity for no translation."""
+    F = np.eye(4)
+    if translations:
+        F[:3, 3] = np.median(np.asarray(translations, dtype=np.float64), axis=0)
+    return F
