@@ -99,11 +99,11 @@ def plan_step(
     ]
     renderer = ModelRenderer(model)
     renders: list[np.ndarray | None] = [None] * len(frames)
-    if cfg.register or cfg.shading_align or wants_prior(depth_source):
+    if cfg.register or cfg.shading.align_by_shading or wants_prior(depth_source):
         # M_t at every tracked pose: registration's reference, the shading's prediction,
         # and the prior handed to a depth source that wants one (the change-aware network).
         renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
-    if cfg.shading_align and renders[0] is not None:
+    if cfg.shading.align_by_shading and renders[0] is not None:
         rendered = cast(list[np.ndarray], renders)
         shifts = [
             shading_translation_of(f, R, camera, cfg) for f, R in zip(frames, rendered, strict=True)

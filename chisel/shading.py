@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from chisel.core.config import check_fields
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera
 
@@ -44,6 +45,42 @@ class ShadingShift:
     dy_px: int
     ncc: float
     n_px: int
+
+
+@dataclass(frozen=True)
+class ShadingConfig:
+    """Correcting a step's tracked poses by the frames' shading (``UpdateConfig.shading``)."""
+
+    align_by_shading: bool = False
+    """Correct a step's tracked poses by the frames' shading before anything else sees
+    them: each frame's image shift between the model's predicted shading and its own
+    luminance, as a sideways camera translation at the depth it looks at; the step's
+    median of those is a constant camera-side correction for all its frames (streaming:
+    the median of the frames so far). Needs the frames' RGB. Off by default: on seeds 0-4
+    it made the paper's row 8 % better and left the change-aware row level
+    (docs/results.md, thirty-ninth session)."""
+    shading_max_shift_px: int = 16
+    """Image shifts up to this many pixels each way are searched."""
+    shading_sigma_px: float = 12.0
+    """The high pass's Gaussian: albedo and the light's fall-off vary slower than this."""
+    shading_min_ncc: float = 0.1
+    """A frame whose best shift correlates less than this gives no translation."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "shading")
+        if not 1 <= self.shading_max_shift_px <= 128:
+            raise InvalidInputError(
+                "shading.shading_max_shift_px",
+                f"must be in [1, 128], got {self.shading_max_shift_px}",
+            )
+        if not (np.isfinite(self.shading_sigma_px) and 0.5 <= self.shading_sigma_px <= 100.0):
+            raise InvalidInputError(
+                "shading.shading_sigma_px", f"must be in [0.5, 100] px, got {self.shading_sigma_px}"
+            )
+        if not (np.isfinite(self.shading_min_ncc) and -1.0 <= self.shading_min_ncc <= 1.0):
+            raise InvalidInputError(
+                "shading.shading_min_ncc", f"must be in [-1, 1], got {self.shading_min_ncc}"
+            )
 
 
 def log_shading(depth_mm: np.ndarray, rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -138,8 +175,7 @@ def shading_shift(
     render_mm: np.ndarray,
     camera: Camera,
     mask: np.ndarray | None = None,
-    max_shift_px: int = 16,
-    sigma_px: float = 12.0,
+    cfg: ShadingConfig = ShadingConfig(),  # noqa: B008 - frozen dataclass
 ) -> ShadingShift:
     """The integer image shift aligning the render's shading with the frame's luminance.
 
@@ -158,15 +194,15 @@ def shading_shift(
     seen = lum > DISPLAY_GAMMA * np.log(1.0 + DARK_LEVEL)
     if mask is not None:
         seen &= mask
-    a, ma = high_pass(lum, seen, sigma_px)
+    a, ma = high_pass(lum, seen, cfg.shading_sigma_px)
     s, ms = log_shading(render_mm, camera.rays_cam())
-    b, mb = high_pass(s, ms, sigma_px)
-    ncc, n = masked_ncc(a, ma, b, mb, max_shift_px)
+    b, mb = high_pass(s, ms, cfg.shading_sigma_px)
+    ncc, n = masked_ncc(a, ma, b, mb, cfg.shading_max_shift_px)
     ncc = np.where(n >= MIN_OVERLAP_FRACTION * H * W, ncc, np.nan)
     if not np.isfinite(ncc).any():
         return ShadingShift(0, 0, 0.0, 0)
     iy, ix = np.unravel_index(np.nanargmax(ncc), ncc.shape)
-    S = int(max_shift_px)
+    S = int(cfg.shading_max_shift_px)
     return ShadingShift(int(ix) - S, int(iy) - S, float(ncc[iy, ix]), int(n[iy, ix]))
 
 
@@ -189,17 +225,18 @@ def shading_translation(
     render_mm: np.ndarray,
     camera: Camera,
     mask: np.ndarray | None = None,
-    max_shift_px: int = 16,
-    sigma_px: float = 12.0,
-    min_ncc: float = 0.1,
+    cfg: ShadingConfig = ShadingConfig(),  # noqa: B008 - frozen dataclass
 ) -> np.ndarray | None:
     """One frame's camera-side sideways translation (3,) mm that moves the render onto
     its shading (:func:`translation_for_shift` at the render's median depth), or None
-    when the frame gives none: the best shift is weaker than ``min_ncc``, on the search
+    when the frame gives none: the best shift is weaker than ``cfg.shading_min_ncc``, on the search
     window's edge (the true one may lie beyond it, or the match is spurious), or the
     render holds no surface."""
-    sh = shading_shift(rgb, render_mm, camera, mask, max_shift_px, sigma_px)
-    if sh.ncc < min_ncc or max(abs(sh.dx_px), abs(sh.dy_px)) >= max_shift_px:
+    sh = shading_shift(rgb, render_mm, camera, mask, cfg)
+    if (
+        sh.ncc < cfg.shading_min_ncc
+        or max(abs(sh.dx_px), abs(sh.dy_px)) >= cfg.shading_max_shift_px
+    ):
         return None
     finite = np.isfinite(render_mm)
     if not finite.any():

@@ -10,6 +10,7 @@ from chisel.change import ChangeConfig
 from chisel.core.config import check_fields
 from chisel.core.errors import InvalidInputError
 from chisel.registration import RegistrationConfig
+from chisel.shading import ShadingConfig
 
 
 @dataclass(frozen=True)
@@ -46,19 +47,8 @@ class UpdateConfig:
     paper's row moved further from it (1.20-1.73x at steps 2-5 against 1.02-1.48x), and
     the change-aware row on seed 3 too (1.13x against 1.06x at step 2): off by default
     (docs/updater.md)."""
-    shading_align: bool = False
-    """Correct a step's tracked poses by the frames' shading before anything else sees
-    them: each frame's image shift between the model's predicted shading (a light at the
-    lens) and its own luminance, as a sideways camera translation at the depth it looks
-    at; the step's median of those is a constant camera-side correction for all its
-    frames (streaming: the median of the frames so far). Needs the frames' RGB. No depth
-    network is involved, so no network's shape error biases it (:mod:`chisel.shading`).
-    Off by default: on seeds 0-4 it made the paper's row 8 % better and left the
-    change-aware row level (docs/results.md, thirty-ninth session)."""
-    shading_max_shift_px: int = 16
-    """The shading alignment searches image shifts up to this many pixels each way."""
-    shading_min_ncc: float = 0.1
-    """Below this correlation at the best shift the tracked pose is kept."""
+    shading: ShadingConfig = field(default_factory=ShadingConfig)
+    """Poses corrected by the frames' shading (off by default; :mod:`chisel.shading`)."""
     max_points: int = 1500
     """About this many pixels (a regular stride) per frame in per-frame registration."""
     sequence_points: int = 500
@@ -161,10 +151,6 @@ class UpdateConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
-        if not 1 <= self.shading_max_shift_px <= 128:
-            raise InvalidInputError(
-                "shading_max_shift_px", f"must be in [1, 128], got {self.shading_max_shift_px}"
-            )
         if self.max_points < 100 or self.sequence_points < 100:
             raise InvalidInputError("max_points", "use at least 100 points per frame")
         if not 1 <= self.noisy_votes <= 255:

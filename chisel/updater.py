@@ -63,10 +63,7 @@ def shading_translation_of(
     shading_translation`), or None (no RGB, or no shift passed the gate)."""
     if frame.rgb is None:
         return None
-    t = shading_translation(
-        np.asarray(frame.rgb), render_mm, camera, frame.mask,
-        max_shift_px=cfg.shading_max_shift_px, min_ncc=cfg.shading_min_ncc,
-    )  # fmt: skip
+    t = shading_translation(np.asarray(frame.rgb), render_mm, camera, frame.mask, cfg.shading)
     log.debug("frame %d: shading translation %s", frame.index, t)
     return t
 
@@ -340,7 +337,7 @@ class ChiselUpdater:
         the pixels its source declared reliable (read on the thread that called it)."""
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
         R = self.renderer.render(self.camera, T)
-        if self.cfg.shading_align:
+        if self.cfg.shading.align_by_shading:
             # the batch's step correction, from the frames seen so far (one worker thread
             # prepares the frames in order)
             t = shading_translation_of(frame, R, self.camera, self.cfg)

@@ -9,11 +9,13 @@ import pytest
 import trimesh
 from skimage.registration._masked_phase_cross_correlation import cross_correlate_masked
 
+from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera
 from chisel.core.raycast import MeshRaycaster
 from chisel.io.sequence import Frame
 from chisel.shading import (
     DISPLAY_GAMMA,
+    ShadingConfig,
     log_shading,
     masked_ncc,
     shading_shift,
@@ -125,7 +127,10 @@ def test_a_shifted_pose_is_pulled_back_onto_the_frame() -> None:
     for error in (_shift(0.4, -0.3), _shift(-0.5, 0.0)):
         T_tracked = T_true @ error
         t = shading_translation(
-            rgb, rc.render_depth(cam, T_tracked), cam, max_shift_px=12, sigma_px=6.0
+            rgb,
+            rc.render_depth(cam, T_tracked),
+            cam,
+            cfg=ShadingConfig(shading_max_shift_px=12, shading_sigma_px=6.0),
         )
         assert t is not None
         left = (T_tracked @ translation_for_shift(cam, 0, 0, 1.0))[:3, 3] + t - T_true[:3, 3]
@@ -149,6 +154,10 @@ def test_no_signal_gives_no_translation() -> None:
     # nothing of the frame is valid: no shift at all
     rgb = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
     sh = shading_shift(rgb, z, cam, mask=np.zeros((48, 64), bool))
+    with pytest.raises(InvalidInputError, match="shading.shading_max_shift_px"):
+        ShadingConfig(shading_max_shift_px=0)
+    with pytest.raises(InvalidInputError, match="shading.shading_sigma_px"):
+        ShadingConfig(shading_sigma_px=float("nan"))
     assert (sh.dx_px, sh.dy_px, sh.ncc, sh.n_px) == (0, 0, 0.0, 0)
     assert shading_translation(rgb, np.full((48, 64), np.nan, np.float32), cam) is None
 
@@ -168,12 +177,14 @@ def test_the_update_config_reaches_the_alignment() -> None:
     T_tracked = _shift(0.5, 0.0)
     R = MeshRaycaster(mesh.vertices, mesh.faces).render_depth(cam, T_tracked)
     frame = Frame(0, T_tracked, rgb=rgb)
-    narrow = UpdateConfig(shading_align=True, shading_max_shift_px=2)
+    narrow = UpdateConfig(shading=ShadingConfig(align_by_shading=True, shading_max_shift_px=2))
     assert shading_translation_of(frame, R, cam, narrow) is None
-    wide = UpdateConfig(shading_align=True, shading_max_shift_px=12)
+    wide = UpdateConfig(shading=ShadingConfig(align_by_shading=True, shading_max_shift_px=12))
     t = shading_translation_of(frame, R, cam, wide)
     assert t is not None and t[0] < -0.3
-    gated = UpdateConfig(shading_align=True, shading_max_shift_px=12, shading_min_ncc=0.99)
+    gated = UpdateConfig(
+        shading=ShadingConfig(align_by_shading=True, shading_max_shift_px=12, shading_min_ncc=0.99)
+    )
     assert shading_translation_of(frame, R, cam, gated) is None
     assert shading_translation_of(Frame(0, T_tracked), R, cam, wide) is None
 
@@ -212,7 +223,7 @@ def test_a_step_is_pulled_onto_its_shading_in_batch_and_streaming(room: dict) ->
     from chisel.updater import ChiselUpdater
 
     cam, model, frames = room["cam"], room["model"], room["frames"]
-    cfg = UpdateConfig(shading_align=True, register=False)
+    cfg = UpdateConfig(shading=ShadingConfig(align_by_shading=True), register=False)
     exact = GroundTruthDepth()
     # the depth source only needs depth to exist; the pose comes from the shading alone
     frames = [
@@ -227,7 +238,7 @@ def test_a_step_is_pulled_onto_its_shading_in_batch_and_streaming(room: dict) ->
         assert f.T_world_from_cam_true is not None
         assert _lateral_error_mm(f.T_world_from_cam, f.T_world_from_cam_true) > 1.0
         assert _lateral_error_mm(T_used, f.T_world_from_cam_true) < 0.3
-    off = plan_step(model, cam, frames, exact, replace(cfg, shading_align=False))
+    off = plan_step(model, cam, frames, exact, replace(cfg, shading=ShadingConfig()))
     assert all(
         np.array_equal(inp.T_world_from_cam, f.T_world_from_cam)
         for inp, f in zip(off.inputs, frames, strict=True)
