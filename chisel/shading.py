@@ -56,9 +56,10 @@ class ShadingConfig:
     them: each frame's image shift between the model's predicted shading and its own
     luminance, as a sideways camera translation at the depth it looks at; the step's
     median of those is a constant camera-side correction for all its frames (streaming:
-    the median of the frames so far). Needs the frames' RGB. Off by default: on seeds 0-4
-    it made the paper's row 8 % better and left the change-aware row level
-    (docs/results.md, thirty-ninth session)."""
+    the median of the frames so far). Needs the frames' RGB. Off by default: both network
+    rows gained 14-27 % on held-out seeds (the paper's row 8 % on seeds 0-4, the
+    change-aware row level there), two of ten seeds lost at every step, and the other
+    rows are not measured with it (docs/results.md, thirty-ninth session)."""
     shading_max_shift_px: int = 16
     """Image shifts up to this many pixels each way are searched."""
     shading_sigma_px: float = 12.0
