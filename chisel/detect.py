@@ -48,7 +48,9 @@ class FrameInput:
 
     frame: Frame
     T_world_from_cam: np.ndarray
-    """(4, 4) tracked pose, checked rigid and inside the model."""
+    """(4, 4) tracked pose, checked rigid and inside the model; with
+    ``UpdateConfig.shading`` aligning, moved sideways by the step's shading correction
+    (:func:`chisel.shading.step_correction`) after that check."""
     estimate: np.ndarray
     """(H, W) float32 depth up to scale, NaN = invalid (:func:`validate_estimate`)."""
     render_mm: np.ndarray | None = None

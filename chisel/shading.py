@@ -230,17 +230,17 @@ def shading_translation(
 ) -> np.ndarray | None:
     """One frame's camera-side sideways translation (3,) mm that moves the render onto
     its shading (:func:`translation_for_shift` at the render's median depth), or None
-    when the frame gives none: the best shift is weaker than ``cfg.shading_min_ncc``, on the search
-    window's edge (the true one may lie beyond it, or the match is spurious), or the
-    render holds no surface."""
+    when the frame gives none: the render holds no surface, or the best shift is weaker
+    than ``cfg.shading_min_ncc`` or on the search window's edge (the true one may lie
+    beyond it, or the match is spurious)."""
+    finite = np.isfinite(render_mm)
+    if not finite.any():
+        return None
     sh = shading_shift(rgb, render_mm, camera, mask, cfg)
     if (
         sh.ncc < cfg.shading_min_ncc
         or max(abs(sh.dx_px), abs(sh.dy_px)) >= cfg.shading_max_shift_px
     ):
-        return None
-    finite = np.isfinite(render_mm)
-    if not finite.any():
         return None
     depth_mm = float(np.median(render_mm[finite]))
     return translation_for_shift(camera, sh.dx_px, sh.dy_px, depth_mm)[:3, 3]
