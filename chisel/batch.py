@@ -52,7 +52,7 @@ from chisel.render import ModelRenderer
 from chisel.reports import StepReport
 from chisel.shading import step_correction
 from chisel.update_config import UpdateConfig
-from chisel.updater import finish_step, fuse, shading_translation_of
+from chisel.updater import finish_step, fuse, shading_report, shading_translation_of
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +77,8 @@ class StepPlan:
     """The step's configuration: ``register`` is off when F was rejected."""
     solve_for_scale: bool
     """The estimates are up to scale (:func:`chisel.detect.scale_free`)."""
+    pose_correction: dict | None = None
+    """The shading's correction applied to every tracked pose first, for the report."""
 
 
 def plan_step(
@@ -99,6 +101,7 @@ def plan_step(
     ]
     renderer = ModelRenderer(model)
     renders: list[np.ndarray | None] = [None] * len(frames)
+    correction = None
     if cfg.register or cfg.shading.align_by_shading or wants_prior(depth_source):
         # M_t at every tracked pose: registration's reference, the shading's prediction,
         # and the prior handed to a depth source that wants one (the change-aware network).
@@ -116,6 +119,7 @@ def plan_step(
                 F_shading[:3, 3].round(3), len(found), len(frames),
             )  # fmt: skip
             poses = [T @ F_shading for T in poses]
+            correction = shading_report(F_shading, len(found), len(frames))
             renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
     estimates, reliable = [], []
     for f, R in zip(frames, renders, strict=True):
@@ -136,7 +140,7 @@ def plan_step(
             frames, poses, estimates, renders, scales, reliable, strict=True
         )
     ]
-    return StepPlan(inputs, renderer, F, seq_reg, step_cfg, solve_for_scale)
+    return StepPlan(inputs, renderer, F, seq_reg, step_cfg, solve_for_scale, correction)
 
 
 def _register_step(
@@ -234,7 +238,7 @@ def update_step(
         fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps, votes, estimate, inp.reliable)
         for f, d, inp in zip(frames, dets, plan.inputs, strict=True)
     ]
-    return finish_step(new, reports, plan.sequence_registration, step_cfg)
+    return finish_step(new, reports, plan.sequence_registration, step_cfg, plan.pose_correction)
 
 
 def _teaching_frames(

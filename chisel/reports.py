@@ -66,13 +66,16 @@ class StepReport:
     frames: list[FrameReport]
     sequence_registration: dict | None
     config: dict
+    pose_correction: dict | None = None
+    """The correction applied to every tracked pose before anything else saw it (the
+    frames' shading, ``UpdateConfig.shading``), or None."""
 
     @classmethod
     def of(
         cls, step: int, frames: list[FrameReport], sequence_registration: dict | None,
-        cfg: UpdateConfig,
+        cfg: UpdateConfig, pose_correction: dict | None = None,
     ) -> StepReport:  # fmt: skip
-        return cls(step, frames, sequence_registration, asdict(cfg))
+        return cls(step, frames, sequence_registration, asdict(cfg), pose_correction)
 
     @property
     def frames_used(self) -> list[int]:
@@ -96,6 +99,7 @@ class StepReport:
             if used
             else 0.0,
             "sequence_registration": self.sequence_registration,
+            "pose_correction": self.pose_correction,
             "frames": [f.to_dict() for f in self.frames],
             "config": self.config,
         }

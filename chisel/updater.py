@@ -56,6 +56,16 @@ from chisel.update_config import UpdateConfig
 log = logging.getLogger(__name__)
 
 
+def shading_report(F: np.ndarray, n_found: int, n_frames: int) -> dict:
+    """The report's ``pose_correction`` for a step corrected by its frames' shading."""
+    return {
+        "by": "shading",
+        "translation_mm": [round(float(v), 4) for v in F[:3, 3]],
+        "frames_found": n_found,
+        "frames": n_frames,
+    }
+
+
 def shading_translation_of(
     frame: Frame, render_mm: np.ndarray, camera: Camera, cfg: UpdateConfig
 ) -> np.ndarray | None:
@@ -181,7 +191,7 @@ def fuse(
 
 def finish_step(
     model: TsdfModel, frames: list[FrameReport], sequence_registration: dict | None,
-    cfg: UpdateConfig,
+    cfg: UpdateConfig, pose_correction: dict | None = None,
 ) -> tuple[TsdfModel, StepReport]:  # fmt: skip
     """The step's end: its counter advances; raises :class:`EmptyResultError` when no
     frame could be used, unless ``cfg.allow_unused_step`` (the model is then kept)."""
@@ -192,7 +202,7 @@ def finish_step(
             raise EmptyResultError(message)
         log.warning("%s: the model is kept as it was", message)
     model = replace(model, step=model.step + 1)
-    return model, StepReport.of(model.step, frames, sequence_registration, cfg)
+    return model, StepReport.of(model.step, frames, sequence_registration, cfg, pose_correction)
 
 
 class ChiselUpdater:
@@ -263,7 +273,12 @@ class ChiselUpdater:
         """Finish the step: the model's step counter advances; returns the report."""
         if self._renderer is None:
             raise RuntimeError("end_step() without begin_step()")
-        self.model, report = finish_step(self.model, self._frames, None, self.cfg)
+        correction = (
+            shading_report(step_correction(self._shading), len(self._shading), len(self._frames))
+            if self._shading
+            else None
+        )
+        self.model, report = finish_step(self.model, self._frames, None, self.cfg, correction)
         self._renderer = None
         self._reset = self._votes = None
         return report

@@ -209,7 +209,7 @@ def room() -> dict:
         )  # fmt: skip
         for i, T in enumerate(true_poses)
     ]
-    return {"cam": cam, "model": model, "frames": frames, "error_mm": 1.08}
+    return {"cam": cam, "model": model, "frames": frames, "error_mm": 1.08, "tissue": tissue}
 
 
 def _lateral_error_mm(T: np.ndarray, T_true: np.ndarray) -> float:
@@ -250,3 +250,37 @@ def test_a_step_is_pulled_onto_its_shading_in_batch_and_streaming(room: dict) ->
     for T_used, f in list(zip(streamed, frames, strict=True))[2:]:
         assert f.T_world_from_cam_true is not None
         assert _lateral_error_mm(T_used, f.T_world_from_cam_true) < 0.3
+
+
+def test_the_cli_corrects_a_metric_source_and_reports_it(
+    room: dict, tmp_path, capsys  # noqa: ANN001
+) -> None:
+    """`chisel update` reads the frames' RGB when the option is on, even for a metric depth
+    source (whose frames it otherwise reads without), and reports the correction; a
+    sequence with no RGB is refused, naming the sequence."""
+    import json
+
+    from chisel.cli import main
+    from chisel.io.sequence import write_sequence
+
+    cam, frames = room["cam"], room["frames"]
+    rc = MeshRaycaster.from_trimesh(room["tissue"])
+    with_depth = [
+        replace(f, depth_mm=rc.render_depth(cam, f.T_world_from_cam_true)) for f in frames
+    ]
+    write_sequence(tmp_path / "seq", cam, with_depth)
+    write_sequence(tmp_path / "grey", cam, [replace(f, rgb=None) for f in with_depth])
+    room["model"].save(tmp_path / "m0.npz")
+    common = ["update", "--model", str(tmp_path / "m0.npz"), "--depth-source", "gt",
+              "--no-register", "--align-by-shading", "--no-progress"]  # fmt: skip
+    assert main([*common, "--sequence", str(tmp_path / "seq"), "--out",
+                 str(tmp_path / "m1.npz"), "--report", str(tmp_path / "r.json")]) == 0  # fmt: skip
+    correction = json.loads((tmp_path / "r.json").read_text())["pose_correction"]
+    assert correction["by"] == "shading" and correction["frames_found"] >= 6
+    # the frames' error is T_tracked = T_true @ _shift(0.9, -0.6): the correction undoes it
+    assert np.allclose(correction["translation_mm"][:2], [-0.9, 0.6], atol=0.3)
+    capsys.readouterr()
+    assert main([*common, "--sequence", str(tmp_path / "grey"), "--out",
+                 str(tmp_path / "m2.npz")]) == 1  # fmt: skip
+    assert "grey: update.shading.align_by_shading needs the frames' RGB" in capsys.readouterr().err
+    assert not (tmp_path / "m2.npz").exists()
