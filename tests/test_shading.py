@@ -3,6 +3,7 @@ against scikit-image's implementation of the same (Padfield's), and a frame rend
 known pose pulled back onto it from a pose turned by a known angle."""
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -253,7 +254,7 @@ def test_a_step_is_pulled_onto_its_shading_in_batch_and_streaming(room: dict) ->
 
 
 def test_the_cli_corrects_a_metric_source_and_reports_it(
-    room: dict, tmp_path, capsys  # noqa: ANN001
+    room: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """`chisel update` reads the frames' RGB when the option is on, even for a metric depth
     source (whose frames it otherwise reads without), and reports the correction; a
