@@ -39,6 +39,9 @@ class FrameReport:
     mask: np.ndarray | None = field(default=None, repr=False, compare=False)
     """(H, W) bool change mask that was carved, when the caller asked to keep it
     (``keep_maps``); an output for ``chisel update --masks``, not serialised."""
+    mask_T_world_from_cam: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """(4, 4) the pose whose image ``mask`` lies in: the tracked pose, or the tracked pose
+    with the step's shading correction (``UpdateConfig.shading``); kept with ``mask``."""
 
     def to_dict(self) -> dict:
         return {

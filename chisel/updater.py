@@ -186,6 +186,7 @@ def fuse(
         uncarved_px=uncarved_px,
         voxels_deleted=voxels_deleted,
         mask=mask if keep_mask else None,
+        mask_T_world_from_cam=det.T_world_from_cam if keep_mask else None,
     )
 
 

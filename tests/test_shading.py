@@ -275,11 +275,19 @@ def test_the_cli_corrects_a_metric_source_and_reports_it(
     common = ["update", "--model", str(tmp_path / "m0.npz"), "--depth-source", "gt",
               "--no-register", "--align-by-shading", "--no-progress"]  # fmt: skip
     assert main([*common, "--sequence", str(tmp_path / "seq"), "--out",
-                 str(tmp_path / "m1.npz"), "--report", str(tmp_path / "r.json")]) == 0  # fmt: skip
+                 str(tmp_path / "m1.npz"), "--report", str(tmp_path / "r.json"),
+                 "--masks", str(tmp_path / "masks.npz")]) == 0  # fmt: skip
     correction = json.loads((tmp_path / "r.json").read_text())["pose_correction"]
     assert correction["by"] == "shading" and correction["frames_found"] >= 6
     # the frames' error is T_tracked = T_true @ _shift(0.9, -0.6): the correction undoes it
     assert np.allclose(correction["translation_mm"][:2], [-0.9, 0.6], atol=0.3)
+    # the masks are made in the corrected camera's image, and say so for their scoring
+    with np.load(tmp_path / "masks.npz") as z:
+        mask_poses = z["T_world_from_cam"]
+    for f, T in zip(frames, mask_poses, strict=True):
+        F = np.linalg.inv(f.T_world_from_cam) @ T
+        assert np.allclose(F[:3, :3], np.eye(3), atol=1e-9)
+        assert np.allclose(F[:3, 3], correction["translation_mm"], atol=1e-3)
     capsys.readouterr()
     assert main([*common, "--sequence", str(tmp_path / "grey"), "--out",
                  str(tmp_path / "m2.npz")]) == 1  # fmt: skip

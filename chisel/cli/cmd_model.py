@@ -476,9 +476,16 @@ def _cmd_update(args: argparse.Namespace) -> int:
                 [f.mask if f.mask is not None else np.zeros(shape, bool) for f in report.frames]
             )
             used = np.array([f.used for f in report.frames], dtype=bool)
-            # Each mask lies in the image of the pose the frame's model render was made at.
+            # Each mask lies in the image of the pose the frame's model render was made at:
+            # the tracked pose, corrected by the shading when that option is on (scored at
+            # the tracked pose, a corrected step's masks met their truth in another view).
             pose_of = {f.index: f.T_world_from_cam for f in frames}
-            poses = np.stack([pose_of[f.index] for f in report.frames])
+            poses = np.stack(
+                [
+                    pose_of[f.index] if f.mask_T_world_from_cam is None else f.mask_T_world_from_cam
+                    for f in report.frames
+                ]
+            )
             with open(temps[1], "wb") as fh:
                 np.savez_compressed(
                     fh, frame_index=idx, masks=masks, used=used, T_world_from_cam=poses
