@@ -71,7 +71,9 @@ class StepReport:
     config: dict
     pose_correction: dict | None = None
     """The correction applied to every tracked pose before anything else saw it (the
-    frames' shading, ``UpdateConfig.shading``), or None."""
+    frames' shading, ``UpdateConfig.shading``), or None. Streaming
+    (:class:`chisel.updater.ChiselUpdater`): the median at the step's end; each frame was
+    corrected by the median of the frames up to it."""
 
     @classmethod
     def of(
