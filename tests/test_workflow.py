@@ -79,6 +79,21 @@ def test_finetune_seed_offset_reaches_both_finetunings(tmp_path: Path) -> None:
     assert run(["-n", *configs], tmp_path).returncode != 0
 
 
+def test_shading_correction_reaches_the_estimate_rows_only(tmp_path: Path) -> None:
+    # The experiments turn the shading's pose correction on; exact depth opts out.
+    for name in ("config.yaml", "smoke.yaml", "fine.yaml", "tools.yaml"):
+        update = yaml.safe_load((ROOT / "config" / name).read_text())["update"]
+        assert update["shading"]["align_by_shading"] is True, name
+    r = run(["table", "-n", "-p", "--cores", "2", *SMOKE], tmp_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    updates = [ln for ln in r.stdout.splitlines() if "python -m chisel update " in ln]
+    exact = [ln for ln in updates if "--depth-source gt" in ln]
+    estimates = [ln for ln in updates if "--depth-source gt" not in ln]
+    assert exact and estimates, updates
+    assert all("--no-align-by-shading" in ln for ln in exact), exact
+    assert not any("align-by-shading" in ln for ln in estimates), estimates
+
+
 def test_render_sim_section_reaches_sim_render_which_checks_it(tmp_path: Path) -> None:
     cfg = tmp_path / "sim.yaml"
     cfg.write_text(yaml.safe_dump({"render": {"sim": {"tools": {"fraction": 1.5}}}}))
