@@ -49,10 +49,10 @@ from chisel.registration import (
     tracking_excess,
 )
 from chisel.render import ModelRenderer
-from chisel.reports import StepReport
+from chisel.reports import StepReport, shading_report
 from chisel.shading import step_correction
 from chisel.update_config import UpdateConfig
-from chisel.updater import finish_step, fuse, shading_report, shading_translation_of
+from chisel.updater import finish_step, fuse, shading_translation_of
 
 log = logging.getLogger(__name__)
 

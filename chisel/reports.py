@@ -108,3 +108,13 @@ class StepReport:
             "frames": [f.to_dict() for f in self.frames],
             "config": self.config,
         }
+
+
+def shading_report(F: np.ndarray, n_found: int, n_frames: int) -> dict:
+    """The report's ``pose_correction`` for a step corrected by its frames' shading."""
+    return {
+        "by": "shading",
+        "translation_mm": [round(float(v), 4) for v in F[:3, 3]],
+        "frames_found": n_found,
+        "frames": n_frames,
+    }

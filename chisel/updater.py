@@ -49,21 +49,11 @@ from chisel.fusion import check_pose_in_model, integrate
 from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
 from chisel.render import ModelRenderer
-from chisel.reports import FrameReport, StepReport
+from chisel.reports import FrameReport, StepReport, shading_report
 from chisel.shading import shading_translation, step_correction
 from chisel.update_config import UpdateConfig
 
 log = logging.getLogger(__name__)
-
-
-def shading_report(F: np.ndarray, n_found: int, n_frames: int) -> dict:
-    """The report's ``pose_correction`` for a step corrected by its frames' shading."""
-    return {
-        "by": "shading",
-        "translation_mm": [round(float(v), 4) for v in F[:3, 3]],
-        "frames_found": n_found,
-        "frames": n_frames,
-    }
 
 
 def shading_translation_of(
