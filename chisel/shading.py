@@ -57,12 +57,13 @@ class ShadingConfig:
     them: each frame's image shift between the model's predicted shading and its own
     luminance, as a sideways camera translation at the depth it looks at; the step's
     median of those is a constant camera-side correction for all its frames (streaming:
-    the median of the frames so far). Needs the frames' RGB, so it is off unless asked
-    for; the workflow's experiments ask for it (``config/*.yaml``) in every row but the
-    exact-depth ones: both network rows gained 14-27 % on held-out seeds (the paper's row
-    8 % on seeds 0-4, the change-aware row level there) and two of ten seeds lost at every
-    step; the registration ablation gained 12 % and the sweep-only row 5 % on seeds 0-4;
-    the exact-depth row lost 3 % (docs/results.md, thirty-ninth to forty-first sessions)."""
+    each frame corrected by the median of the frames before it). Needs the frames' RGB,
+    so it is off unless asked for; the workflow's experiments ask for it
+    (``config/*.yaml``) in every row but the exact-depth ones: both network rows gained
+    14-27 % on held-out seeds (the paper's row 8 % on seeds 0-4, the change-aware row
+    level there) and two of ten seeds lost at every step; the registration ablation
+    gained 12 % and the sweep-only row 5 % on seeds 0-4; the exact-depth row lost 3 %
+    (docs/results.md, thirty-ninth to forty-first sessions)."""
     shading_max_shift_px: int = 16
     """Image shifts up to this many pixels each way are searched."""
     shading_sigma_px: float = 12.0

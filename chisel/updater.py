@@ -342,16 +342,19 @@ class ChiselUpdater:
         """The frame's checked tracked pose, M_t rendered there, the validated estimate and
         the pixels its source declared reliable (read on the thread that called it)."""
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
-        R = self.renderer.render(self.camera, T)
         if self.cfg.shading.align_by_shading:
-            # the batch's step correction, from the frames seen so far (one worker thread
-            # prepares the frames in order)
+            # The batch's step correction from the frames before this one (one worker
+            # thread prepares the frames in order): M_t is rendered once, at the corrected
+            # pose, and this frame's own shift, measured from there, joins the median for
+            # the frames after it (its own jitter is not applied to it, as in the batch).
+            F = step_correction(self._shading)
+            T = T @ F
+            R = self.renderer.render(self.camera, T)
             t = shading_translation_of(frame, R, self.camera, self.cfg)
             if t is not None:
-                self._shading.append(t)
-            if self._shading:
-                T = T @ step_correction(self._shading)
-                R = self.renderer.render(self.camera, T)
+                self._shading.append(F[:3, 3] + t)
+        else:
+            R = self.renderer.render(self.camera, T)
         E = self.estimate(frame, R)
         return FrameInput(
             frame, T, E, R, reliable=reliable_pixels(self.depth_source, frame, E.shape)

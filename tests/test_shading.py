@@ -247,7 +247,9 @@ def test_a_step_is_pulled_onto_its_shading_in_batch_and_streaming(room: dict) ->
     upd = ChiselUpdater(model, cam, exact, cfg)
     upd.begin_step()
     streamed = [upd._prepare(f).T_world_from_cam for f in frames]
-    # the first frame is on its own; from the third on the running median holds
+    # a frame is corrected by the frames before it: the first keeps its tracked pose, and
+    # from the third on the running median holds
+    np.testing.assert_array_equal(streamed[0], frames[0].T_world_from_cam)
     for T_used, f in list(zip(streamed, frames, strict=True))[2:]:
         assert f.T_world_from_cam_true is not None
         assert _lateral_error_mm(T_used, f.T_world_from_cam_true) < 0.3
