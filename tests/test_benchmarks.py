@@ -91,9 +91,11 @@ def test_bench_update_prints_fusion_ratio_and_update_fps_last() -> None:
     figures = check_contract(
         pairs,
         "update_fps",
-        ["fusion_ratio_vs_open3d", "batch_update_fps", "update_fps_from_ct", "peak_rss_mib"],
-    )
+        ["fusion_ratio_vs_open3d", "batch_update_fps", "update_fps_from_ct",
+         "update_fps_from_ct_shading", "shading_fps_ratio", "peak_rss_mib"],
+    )  # fmt: skip
     assert number(figures["fusion_ratio_vs_open3d"]) > 0
+    assert number(figures["shading_fps_ratio"]) > 0
 
 
 def test_bench_dataset_prints_ratio_last_and_names_its_generator() -> None:
