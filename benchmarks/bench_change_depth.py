@@ -25,8 +25,9 @@ precision and recall over all frames. Speed: frames/s of one streaming step's de
 work at the frame size (ray-cast render of the model surface at the tracked pose +
 the network, batch 1, ``--threads`` torch threads); the TSDF fusion is not included.
 ``--stream-update`` also times the whole streaming update (``ChiselUpdater``: render,
-network, change mask, fusion; with and without per-frame registration) on a model built
-from the previous step's mesh: ``process_stream`` (the next frame's render and network
+network, change mask, fusion; without and with per-frame registration, and with it and
+the poses corrected by the frames' shading as the shipped experiments run the row) on a
+model built from the previous step's mesh: ``process_stream`` (the next frame's render and network
 overlap this frame's carving) and, as its peer in the same run, ``process`` frame by
 frame. Prints ``name: value`` lines, ``change_aware_abs_rel`` last (mean of near and unchanged,
 vs_tracked).
@@ -67,6 +68,7 @@ def _stream_update(ref, seq: Sequence, change, repeats: int = 5) -> None:  # noq
     frame's detection and carving) against ``process`` frame by frame, same run, each the
     median of ``repeats`` alternating passes over the step."""
     from chisel.build import BuildConfig, build_preop_model
+    from chisel.shading import ShadingConfig
     from chisel.update_config import UpdateConfig
     from chisel.updater import ChiselUpdater
 
@@ -77,11 +79,17 @@ def _stream_update(ref, seq: Sequence, change, repeats: int = 5) -> None:  # noq
     warm = ChiselUpdater(model, seq.camera, change)
     warm.begin_step()
     list(warm.process_stream(frames[:3]))  # JIT kernels, allocator, the worker thread
-    for register in (False, True):
+    variants = {
+        "no_registration": UpdateConfig(register=False),
+        "registration": UpdateConfig(register=True),
+        # as the shipped experiments run the change-aware row: poses corrected by shading
+        "registration_shading": UpdateConfig(shading=ShadingConfig(align_by_shading=True)),
+    }
+    for name, cfg in variants.items():
         runs: dict[str, list[float]] = {"process": [], "process_stream": []}
         for _ in range(repeats):  # alternating, the median of each
             for mode, rates in runs.items():
-                upd = ChiselUpdater(model, seq.camera, change, UpdateConfig(register=register))
+                upd = ChiselUpdater(model, seq.camera, change, cfg)
                 upd.begin_step()
                 t = time.perf_counter()
                 if mode == "process":
@@ -90,7 +98,6 @@ def _stream_update(ref, seq: Sequence, change, repeats: int = 5) -> None:  # noq
                     reports = list(upd.process_stream(frames))
                 rates.append(len(reports) / (time.perf_counter() - t))
         fps = {mode: float(np.median(rates)) for mode, rates in runs.items()}
-        name = "registration" if register else "no_registration"
         print(f"stream_update_{name}_frame_by_frame_fps: {fps['process']:.1f}")
         print(f"stream_update_{name}_fps: {fps['process_stream']:.1f}")
         print(f"stream_update_{name}_overlap_speedup: {fps['process_stream'] / fps['process']:.2f}")
