@@ -174,12 +174,14 @@ def masked_ncc(
     A = {k: np.conj(spectrum(x)) for k, x in (("m", fa), ("a", a), ("aa", a * a))}
     B = {k: spectrum(x) for k, x in (("m", fb), ("b", b), ("bb", b * b))}
 
+    # c(d) = sum_u f(u) g(u + d) sits at the circular index d mod shape: no wrap for |d| <= S.
+    window = np.ix_(
+        np.r_[np.arange(shape[0] - S, shape[0]), np.arange(0, S + 1)],
+        np.r_[np.arange(shape[1] - S, shape[1]), np.arange(0, S + 1)],
+    )
+
     def corr(ka: str, kb: str) -> np.ndarray:
-        # c(d) = sum_u f(u) g(u + d); circular index d mod shape, no wrap for |d| <= S.
-        c = scipy.fft.irfft2(A[ka] * B[kb], s=shape)
-        rows = np.r_[np.arange(shape[0] - S, shape[0]), np.arange(0, S + 1)]
-        cols = np.r_[np.arange(shape[1] - S, shape[1]), np.arange(0, S + 1)]
-        return c[np.ix_(rows, cols)]
+        return scipy.fft.irfft2(A[ka] * B[kb], s=shape)[window]
 
     n = np.rint(corr("m", "m"))
     sa, sb = corr("a", "m"), corr("m", "b")
