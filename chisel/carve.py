@@ -47,7 +47,7 @@ def _voxel_at(A, z, rx, ry, nx, ny, nz):
     return (i * ny + j) * nz + k
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_mm, tol_mm,
                 max_layers, precise, max_layer_mm, max_depth_mm, z0, z1, reach):  # fmt: skip
     # Read-only pass: per changed pixel, its status and the depth intervals [z0, z1) of the
@@ -163,7 +163,7 @@ def _carve_plan(tsdf, weight, shape, A, rays, m_t, m_new, mask, voxel_mm, trunc_
     return status
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx, cy, dist, r2_max,
                  status, z0, z1, half_voxel_mm, votes, need_votes, precise, reach, reach_free,
                  reach_from, trunc_mm):  # fmt: skip
@@ -229,7 +229,7 @@ def _carve_apply(tsdf, weight, reset, use_reset, shape, lo, hi, R, t, fx, fy, cx
     return counts.sum()
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _deleted_voxel_box(shape, rays, T_voxel_from_cam, status, z0, z1, reach, reach_from):
     # Index box [lo, hi) of the voxels that carving can reach: the hull, in voxel
     # coordinates, of each pixel's front (first layer's front, or the edge's reach_from) and

@@ -193,7 +193,7 @@ def shift_to_render(
     return out, shift, float(a)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _zbuffer(u, v, z, H, W, out):
     for n in range(u.shape[0]):
         uu = u[n]
@@ -254,7 +254,7 @@ def _project_into(T_cw, j, X, Y, Z, fx, fy, cx, cy, k1, k2, p1, p2, k3, W, H):
     return uu, vv, zc
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _warp_kernel(depth, rays, D, fx, fy, cx, cy, dist, out):
     H, W = depth.shape
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
@@ -380,7 +380,7 @@ def clean_mask(mask: np.ndarray, cfg: ChangeConfig) -> np.ndarray:
     return m.astype(bool)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist,
                         threshold_mm, visible_mm, contradict, support, observed):  # fmt: skip
     N, H, W = masks.shape

@@ -31,7 +31,7 @@ from chisel.model import TsdfModel
 from chisel.update_config import UpdateConfig
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _near_unobserved_kernel(depth, rays, T_vc, weight, band, step, out):  # fmt: skip
     H, W = depth.shape
     nx, ny, nz = weight.shape
@@ -103,7 +103,7 @@ def depth_edges(depth_mm: np.ndarray, jump_mm: float) -> np.ndarray:
         return near_invalid | ~(hi - lo <= jump_mm)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _agreement_kernel(cands, ests, rays, T_wc, T_cw, used, occluded, fx, fy, cx, cy, dist,
                       tol_mm, support, observed):  # fmt: skip
     N, H, W = cands.shape

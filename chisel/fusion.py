@@ -46,7 +46,7 @@ distort = numba.njit(cache=True)(distort_normalized)
 numba kernels (fusion, carving, change): one home for the model, no call overhead."""
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H):
     # The raw (distorted) pixel whose area holds the normalised point (xc, yc), or
     # (-1, -1) outside the image or beyond the lens model's valid radius (r2_max): the
@@ -69,7 +69,7 @@ def nearest_pixel(xc, yc, r2_max, distorted, dist, fx, fy, cx, cy, W, H):
     return u, v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _nearest_pixels(pc, r2_max, distorted, dist, fx, fy, cx, cy, W, H):
     out = np.full((pc.shape[0], 2), -1, dtype=np.int64)
     for i in range(pc.shape[0]):
@@ -96,7 +96,7 @@ def nearest_pixels(points_cam_mm: np.ndarray, camera: Camera) -> np.ndarray:
     )  # fmt: skip
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _clean_depth(depth):
     # No fastmath here: this is where NaN and inf are told apart from depths; <= 0 out.
     out = np.empty(depth.shape, dtype=np.float32)
@@ -107,7 +107,7 @@ def _clean_depth(depth):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _weights_ok(pix_w):
     # No fastmath: NaN must fail the test. (Two numpy passes cost ~0.07 ms per frame.)
     for v in range(pix_w.shape[0]):
@@ -118,7 +118,7 @@ def _weights_ok(pix_w):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _tile_depth(depth, pix_w, use_weight, offsets, pixels):
     # Per tile, the largest depth among the active pixels that a voxel of the tile may
     # project to (0 = none): ``pixels[offsets[t]:offsets[t + 1]]`` lists them (flat).
@@ -137,7 +137,7 @@ def _tile_depth(depth, pix_w, use_weight, offsets, pixels):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _plan(tile_depth, nx, pad_mm, n_buckets):
     # The active tiles (depth bound > 0) as [tx, ty] with z_far = bound + pad_mm, dealt to
     # ``n_buckets`` buckets (one per thread) in decreasing cost, snake order, so that the
@@ -187,7 +187,7 @@ def _clip(lo, hi, a, b, inv_b):
     return lo, hi
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def _integrate_kernel(
     tsdf,
     weight,

@@ -91,7 +91,7 @@ class SurfaceIndex:
         return d, idx
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _grid_nearest(y, origin, voxel, shape, cache, points, dist_mm):
     """Memoised nearest vertex per voxel: (distance (N,), index (N,)); index -1 = no vertex
     within reach or outside the grid, -2 = voxel not looked up yet (distance inf)."""
@@ -121,7 +121,7 @@ def _grid_nearest(y, origin, voxel, shape, cache, points, dist_mm):
     return d, idx
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _normal_equations(y_rel, c_new, idx, points, normals, k, with_scale):
     """Tukey-weighted point-to-plane normal equations of one ICP iteration.
 
@@ -168,7 +168,7 @@ def _normal_equations(y_rel, c_new, idx, points, normals, k, with_scale):
     return A, b, wsum, count
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _rotvec_to_matrix(w):
     """(3, 3) rotation of a rotation vector (Rodrigues)."""
     a = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
@@ -180,7 +180,7 @@ def _rotvec_to_matrix(w):
     return out + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _matrix_to_rotvec(R):
     """Rotation vector of a (3, 3) rotation (small-angle safe; angles well below 180 deg)."""
     c = min(max((R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0, -1.0), 1.0)
@@ -189,7 +189,7 @@ def _matrix_to_rotvec(R):
     return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) * f
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _solve_small(A, b):
     """x with A x = b by Gaussian elimination with partial pivoting; (x, ok)."""
     m = A.shape[0]
@@ -223,7 +223,7 @@ def _solve_small(A, b):
 _RAN_OUT, _CONVERGED, _STOPPED, _NEED_LOOKUP = 0, 1, 2, 3
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _icp_iterate(
     rel, sigma, R, c_new, idx_given, grid_origin, voxel, grid_shape, cache, use_grid,
     points, normals, dist, k, with_scale, prior, pose_prior, c_prior, R_prior, rho2, max_iter,
