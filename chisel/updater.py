@@ -231,7 +231,9 @@ class ChiselUpdater:
         self._votes: np.ndarray | None = None
         self._frames: list[FrameReport] = []
         self._hand_eye = HandEye()
-        self._shading: list[np.ndarray] = []
+        # Per frame of the step, in order: its shading translation (the correction it was
+        # rendered with plus its own shift), or None where it gave none.
+        self._shading: list[np.ndarray | None] = []
 
     def begin_step(self, hand_eye: np.ndarray | None = None, fixed: bool = False) -> None:
         """Start a surgical step: M_t is the model as it is now.
@@ -264,10 +266,9 @@ class ChiselUpdater:
         """Finish the step: the model's step counter advances; returns the report."""
         if self._renderer is None:
             raise RuntimeError("end_step() without begin_step()")
+        found = [t for t in self._shading if t is not None]
         correction = (
-            shading_report(step_correction(self._shading), len(self._shading), len(self._frames))
-            if self._shading
-            else None
+            shading_report(step_correction(found), len(found), len(self._frames)) if found else None
         )
         self.model, report = finish_step(self.model, self._frames, None, self.cfg, correction)
         self._renderer = None
@@ -295,23 +296,29 @@ class ChiselUpdater:
         with M_t is skipped (``used = False``) and leaves the model untouched; keep_maps :
         the report keeps the carved change mask.
         """
-        return self._carve(self._prepare(frame), keep_maps)
+        F = self._shading_correction(len(self._shading))
+        inp = self._prepare(frame, F)
+        report = self._carve(inp, keep_maps)
+        if F is not None:
+            self._shading.append(self._shading_translation(inp, F))
+        return report
 
     def process_stream(
         self, frames: Iterable[Frame], keep_maps: bool = False
     ) -> Iterator[FrameReport]:
         """:meth:`process` over ``frames`` in order, each frame's render of M_t and depth
         estimate running on a worker thread while the frame before it is detected and
-        carved.
+        carved, and its shading shift (``UpdateConfig.shading``) on a second one.
 
-        Both depend only on the frame and on M_t, the model's surface at step start, never
-        on what earlier frames of the step carved: reports and model are those of
-        :meth:`process` frame by frame. A frame's report is yielded once the next frame
-        has arrived (or the frames have ended): one frame of latency, for a rate near the
-        slower half instead of the sum of both (a network's inference and the ray cast
-        release the GIL). Meanwhile numba's kernels run on the calling thread alone.
-        ``frames`` may be a live source. The depth source is called from one worker
-        thread, one frame at a time, so it must not depend on the caller's thread
+        All three depend only on the frame, on M_t (the model's surface at step start,
+        never on what earlier frames of the step carved) and on the shading shifts of the
+        frames two or more before it: reports and model are those of :meth:`process`
+        frame by frame. A frame's report is yielded once the next frame has arrived (or
+        the frames have ended): one frame of latency, for a rate near the slowest of the
+        three instead of their sum (a network's inference, the ray cast, the FFTs and
+        numba's kernels release the GIL). Meanwhile numba's kernels run on the calling
+        thread alone. ``frames`` may be a live source. The depth source is called from one
+        worker thread, one frame at a time, so it must not depend on the caller's thread
         (TorchScript modules and Mitsuba ray casts do not). An error of frame i is raised
         after the reports of the frames before it.
         """
@@ -328,33 +335,62 @@ class ChiselUpdater:
             finally:
                 numba.set_num_threads(threads)
 
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="chisel-depth") as pool:
+        def shade(prepared: Future[FrameInput], F: np.ndarray) -> np.ndarray | None:
+            return self._shading_translation(prepared.result(), F)
+
+        first = len(self._shading)
+        shifts: list[Future[np.ndarray | None]] = []
+
+        def collect(upto: int) -> None:
+            """Wait for the shifts of the stream's frames before ``upto``, in order."""
+            while len(self._shading) < first + min(upto, len(shifts)):
+                self._shading.append(shifts[len(self._shading) - first].result())
+
+        with (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="chisel-depth") as pool,
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="chisel-shading") as shading,
+        ):
             pending = None
-            for frame in frames:
-                job = pool.submit(self._prepare, frame)
+            for k, frame in enumerate(frames):
+                collect(max(k - 1, 0))
+                F = self._shading_correction(first + k)
+                job = pool.submit(self._prepare, frame, F)
+                if F is not None:
+                    shifts.append(shading.submit(shade, job, F))
                 if pending is not None:
                     yield carve(pending)
                 pending = job
             if pending is not None:
                 yield carve(pending)
+            collect(len(shifts))
 
-    def _prepare(self, frame: Frame) -> FrameInput:
-        """The frame's checked tracked pose, M_t rendered there, the validated estimate and
-        the pixels its source declared reliable (read on the thread that called it)."""
+    def _shading_correction(self, position: int) -> np.ndarray | None:
+        """The camera-side correction F for the step's frame at ``position`` with
+        ``UpdateConfig.shading`` on (None when off): the median of the shading
+        translations of the frames two or more before it (:func:`chisel.shading.
+        step_correction`; the batch takes all the step's frames). Not the frame just
+        before, so that its shift can be measured while this frame is rendered
+        (:meth:`process_stream`); a frame's own shift, which holds its jitter too, is
+        never applied to it, as in the batch."""
+        if not self.cfg.shading.align_by_shading:
+            return None
+        earlier = self._shading[: max(position - 1, 0)]
+        return step_correction([t for t in earlier if t is not None])
+
+    def _shading_translation(self, inp: FrameInput, F: np.ndarray) -> np.ndarray | None:
+        """The frame's shading translation in the tracked camera's frame: the correction
+        F it was rendered with plus its own shift from there; None where it gave none."""
+        t = shading_translation_of(inp.frame, inp.render_mm, self.camera, self.cfg)
+        return None if t is None else F[:3, 3] + t
+
+    def _prepare(self, frame: Frame, F: np.ndarray | None = None) -> FrameInput:
+        """The frame's checked tracked pose (moved by the shading correction F when given),
+        M_t rendered there, the validated estimate and the pixels its source declared
+        reliable (read on the thread that called it)."""
         T = check_pose_in_model(self.model, frame.T_world_from_cam, f"frame {frame.index} pose")
-        if self.cfg.shading.align_by_shading:
-            # The batch's step correction from the frames before this one (one worker
-            # thread prepares the frames in order): M_t is rendered once, at the corrected
-            # pose, and this frame's own shift, measured from there, joins the median for
-            # the frames after it (its own jitter is not applied to it, as in the batch).
-            F = step_correction(self._shading)
+        if F is not None:
             T = T @ F
-            R = self.renderer.render(self.camera, T)
-            t = shading_translation_of(frame, R, self.camera, self.cfg)
-            if t is not None:
-                self._shading.append(F[:3, 3] + t)
-        else:
-            R = self.renderer.render(self.camera, T)
+        R = self.renderer.render(self.camera, T)
         E = self.estimate(frame, R)
         return FrameInput(
             frame, T, E, R, reliable=reliable_pixels(self.depth_source, frame, E.shape)

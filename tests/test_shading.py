@@ -246,15 +246,31 @@ def test_a_step_is_pulled_onto_its_shading_in_batch_and_streaming(room: dict) ->
         np.array_equal(inp.T_world_from_cam, f.T_world_from_cam)
         for inp, f in zip(off.inputs, frames, strict=True)
     )
-    upd = ChiselUpdater(model, cam, exact, cfg)
-    upd.begin_step()
-    streamed = [upd._prepare(f).T_world_from_cam for f in frames]
-    # a frame is corrected by the frames before it: the first keeps its tracked pose, and
-    # from the third on the running median holds
-    np.testing.assert_array_equal(streamed[0], frames[0].T_world_from_cam)
+    # Streaming: a frame is corrected by the frames two or more before it (the shift of
+    # the frame just before is measured meanwhile, on its own thread): the first two keep
+    # their tracked poses, and from the third on the running median holds. Frame by frame
+    # and through process_stream, the same poses and the same model.
+    runs = []
+    for stream in (False, True):
+        upd = ChiselUpdater(model, cam, exact, cfg)
+        upd.begin_step()
+        reports = (
+            list(upd.process_stream(frames, keep_maps=True))
+            if stream
+            else [upd.process(f, keep_maps=True) for f in frames]
+        )
+        runs.append(([r.mask_T_world_from_cam for r in reports], upd.end_step(), upd.model))
+    (streamed, step, model_1), (streamed_2, step_2, model_2) = runs
+    for T, T2 in zip(streamed, streamed_2, strict=True):
+        np.testing.assert_array_equal(T, T2)
+    for T_used, f in list(zip(streamed, frames, strict=True))[:2]:
+        np.testing.assert_array_equal(T_used, f.T_world_from_cam)
     for T_used, f in list(zip(streamed, frames, strict=True))[2:]:
         assert f.T_world_from_cam_true is not None
         assert _lateral_error_mm(T_used, f.T_world_from_cam_true) < 0.3
+    np.testing.assert_array_equal(model_1.tsdf, model_2.tsdf)
+    assert step.pose_correction == step_2.pose_correction
+    assert step.pose_correction is not None and step.pose_correction["frames_found"] >= 6
 
 
 def test_the_cli_corrects_a_metric_source_and_reports_it(
