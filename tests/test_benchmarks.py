@@ -92,10 +92,12 @@ def test_bench_update_prints_fusion_ratio_and_update_fps_last() -> None:
         pairs,
         "update_fps",
         ["fusion_ratio_vs_open3d", "batch_update_fps", "update_fps_from_ct",
-         "update_fps_from_ct_shading", "shading_fps_ratio", "peak_rss_mib"],
+         "update_fps_from_ct_shading", "shading_fps_ratio", "update_fps_from_ct_shading_stream",
+         "shading_stream_fps_ratio", "peak_rss_mib"],
     )  # fmt: skip
     assert number(figures["fusion_ratio_vs_open3d"]) > 0
     assert number(figures["shading_fps_ratio"]) > 0
+    assert figures["update_shading_stream_same_model"] == "True"
 
 
 def test_bench_dataset_prints_ratio_last_and_names_its_generator() -> None:
