@@ -73,7 +73,8 @@ class StepReport:
     """The correction applied to every tracked pose before anything else saw it (the
     frames' shading, ``UpdateConfig.shading``), or None. Streaming
     (:class:`chisel.updater.ChiselUpdater`): the median at the step's end; each frame was
-    corrected by the median of the frames before it (the first frame not at all)."""
+    corrected by the median of the frames two or more before it (the first two not at
+    all)."""
 
     @classmethod
     def of(

@@ -59,8 +59,8 @@ class ShadingConfig:
     them: each frame's image shift between the model's predicted shading and its own
     luminance, as a sideways camera translation at the depth it looks at; the step's
     median of those is a constant camera-side correction for all its frames (streaming:
-    each frame corrected by the median of the frames before it). Needs the frames' RGB,
-    so it is off unless asked for; the workflow's experiments ask for it
+    each frame corrected by the median of the frames two or more before it). Needs the
+    frames' RGB, so it is off unless asked for; the workflow's experiments ask for it
     (``config/*.yaml``) in every row but the exact-depth ones: both network rows gained
     14-27 % on held-out seeds (the paper's row 8 % on seeds 0-4, the change-aware row
     level there) and two of ten seeds lost at every step; the registration ablation
