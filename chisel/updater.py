@@ -380,6 +380,8 @@ class ChiselUpdater:
     def _shading_translation(self, inp: FrameInput, F: np.ndarray) -> np.ndarray | None:
         """The frame's shading translation in the tracked camera's frame: the correction
         F it was rendered with plus its own shift from there; None where it gave none."""
+        if inp.render_mm is None:  # _prepare always renders; kept for the type
+            return None
         t = shading_translation_of(inp.frame, inp.render_mm, self.camera, self.cfg)
         return None if t is None else F[:3, 3] + t
 
