@@ -298,9 +298,14 @@ class ChiselUpdater:
         """
         F = self._shading_correction(len(self._shading))
         inp = self._prepare(frame, F)
-        report = self._carve(inp, keep_maps)
-        if F is not None:
-            self._shading.append(self._shading_translation(inp, F))
+        if F is None:
+            return self._carve(inp, keep_maps)
+        # The frame's own shading shift (for the frames after the next one) is measured
+        # on a thread beside its carving, and both end before the call returns.
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="chisel-shading") as pool:
+            shift = pool.submit(self._shading_translation, inp, F)
+            report = self._carve_beside_workers(inp, keep_maps)
+            self._shading.append(shift.result())
         return report
 
     def process_stream(
@@ -324,16 +329,7 @@ class ChiselUpdater:
         """
 
         def carve(prepared: Future[FrameInput]) -> FrameReport:
-            inp = prepared.result()
-            # numba's kernels run on this thread alone (the setting is per thread): its
-            # OpenMP workers spin-wait between kernels and would take the core that the
-            # worker's inference needs (the overlap then gained nothing).
-            threads = numba.get_num_threads()
-            numba.set_num_threads(1)
-            try:
-                return self._carve(inp, keep_maps)
-            finally:
-                numba.set_num_threads(threads)
+            return self._carve_beside_workers(prepared.result(), keep_maps)
 
         def shade(prepared: Future[FrameInput], F: np.ndarray) -> np.ndarray | None:
             return self._shading_translation(prepared.result(), F)
@@ -397,6 +393,18 @@ class ChiselUpdater:
         return FrameInput(
             frame, T, E, R, reliable=reliable_pixels(self.depth_source, frame, E.shape)
         )
+
+    def _carve_beside_workers(self, inp: FrameInput, keep_maps: bool) -> FrameReport:
+        """:meth:`_carve` with numba's kernels on this thread alone (the setting is per
+        thread): its OpenMP workers spin-wait between kernels and would take the core
+        that a worker thread's inference or shading needs (the overlap then gained
+        nothing)."""
+        threads = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            return self._carve(inp, keep_maps)
+        finally:
+            numba.set_num_threads(threads)
 
     def _carve(self, inp: FrameInput, keep_maps: bool) -> FrameReport:
         """Detect a frame's change from its estimate and carve it into the model."""
