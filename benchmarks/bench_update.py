@@ -316,7 +316,9 @@ def main() -> int:
     # The same two through process_stream: with the correction, the previous frame's
     # shift is measured on a thread of its own while this frame is rendered.
     _, _, plain_stream_s = _stream_step(ct_model, cam, source, ucfg, sim_frames, overlap=True)
-    upd_ss, _, shading_stream_s = _stream_step(ct_model, cam, source, scfg, sim_frames, True)
+    upd_ss, _, shading_stream_s = _stream_step(
+        ct_model, cam, source, scfg, sim_frames, overlap=True
+    )
     same = upd_ss.model.tsdf.tobytes() == upd_s.model.tsdf.tobytes()
     print(f"update_shading_stream_same_model: {same}")
     print(f"update_fps_from_ct_sim_tracker_stream: {args.frames / plain_stream_s:.1f}")
