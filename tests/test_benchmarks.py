@@ -374,3 +374,29 @@ def test_bench_change_bounds_next_surface_and_figures_against_closed_forms() -> 
     assert f["image_exact_near_abs_rel"] == pytest.approx((20 * 1.0 + 20 * 0.5) / near)
     assert f["next_layer_where_changed_near_abs_rel"] == 0.0
     assert f["next_layer_best_near_abs_rel"] == 0.0
+
+
+def test_bench_shading_alignment_parallax_depth_and_misalignment_in_closed_form() -> None:
+    """The parallax depth is the depth of the pattern's structure; a sideways translation
+    t of a view of a plane at z misaligns it by f t / z pixels."""
+    from chisel.core.geometry import Camera
+
+    bench = load_benchmark("bench_shading_alignment")
+    rng = np.random.default_rng(1)
+    z = np.full((48, 64), 8.0)
+    z[:, 32:] = 20.0
+    pattern = np.full(z.shape, 0.3)
+    # Structure only at 20 mm, two columns inside it so that its edge lies there too.
+    pattern[:, 34:] = rng.normal(size=(48, 30))
+    inv = bench.parallax_inverse_depth(pattern, np.ones(z.shape, bool), z)
+    np.testing.assert_allclose(inv, [1 / 20, 1 / 20], rtol=1e-12)
+    stripes = np.tile(np.sin(np.arange(64) / 2.0), (48, 1))  # no structure along y
+    assert bench.parallax_inverse_depth(stripes, np.ones(z.shape, bool), z) is None
+
+    cam = Camera.from_fov(64, 48, 70)
+    plane = np.full((48, 64), 12.0)
+    T = np.eye(4)
+    T[0, 3] = 0.3
+    assert bench.misalignment_px(plane, cam, np.eye(4), T) == pytest.approx(cam.fx * 0.3 / 12)
+    assert bench.misalignment_px(plane, cam, np.eye(4), np.eye(4)) == pytest.approx(0.0)
+    assert math.isnan(bench.misalignment_px(np.full((48, 64), np.nan), cam, np.eye(4), T))
