@@ -8,8 +8,10 @@ moves a surface at depth z by f t / z pixels, so a view that spans depths has no
 shift: to first order the best-correlating shift is the flow averaged with the predicted
 pattern's squared gradient along each axis as weights (Lucas-Kanade's normal equations for
 one shift), i.e. the shift of a surface at the "parallax depth" 1 / mean_w(1 / z). On the
-phantoms that depth lies 2-3x beyond the median: the folded, far part of a view holds the
-shading's structure, its near walls are smooth (docs/results.md, forty-third session).
+phantoms that depth lies beyond the median: the folded, far part of a view holds the
+shading's structure, its near walls are smooth. Converting there reads each frame's shift
+better on average but gives no better step correction (docs/results.md, forty-third
+session), so the shipped code keeps the median.
 
 For each seed and step of a finished workflow run (`table` or `all`), with M_t the
 method's model before the step (the preop model at step 1) rendered at the step's tracked
