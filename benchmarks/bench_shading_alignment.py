@@ -52,7 +52,9 @@ from chisel.shading import (  # noqa: E402
     high_pass,
     log_shading,
     shading_shift,
+    shift_passes,
     step_correction,
+    translation_for_shift,
 )
 from chisel.update_config import UpdateConfig  # noqa: E402
 from sim.dataset import parse_seeds  # noqa: E402
@@ -136,9 +138,7 @@ def _step(
             continue
         f = seq.frame(i, depth=False)
         sh = shading_shift(f.rgb, R, cam, f.mask, cfg)
-        if sh.ncc < cfg.shading_min_ncc or max(abs(sh.dx_px), abs(sh.dy_px)) >= (
-            cfg.shading_max_shift_px
-        ):
+        if not shift_passes(sh, cfg):
             continue
         s, ms = log_shading(R, rays)
         b, mb = high_pass(s, ms, cfg.shading_sigma_px)
@@ -146,7 +146,7 @@ def _step(
         if inv is None:
             continue
         d = float(np.median(R[finite]))
-        t_median.append(np.array([sh.dx_px * d / cam.fx, sh.dy_px * d / cam.fy, 0.0]))
+        t_median.append(translation_for_shift(cam, sh.dx_px, sh.dy_px, d)[:3, 3])
         t_parallax.append(
             np.array([sh.dx_px / (cam.fx * inv[0]), sh.dy_px / (cam.fy * inv[1]), 0.0])
         )

@@ -272,6 +272,15 @@ def translation_for_shift(
     return C
 
 
+def shift_passes(sh: ShadingShift, cfg: ShadingConfig) -> bool:
+    """Whether a frame's best shift counts: at least ``cfg.shading_min_ncc`` and inside
+    the search window (one on its edge may have the true one beyond it, or be spurious)."""
+    return (
+        sh.ncc >= cfg.shading_min_ncc
+        and max(abs(sh.dx_px), abs(sh.dy_px)) < cfg.shading_max_shift_px
+    )
+
+
 def shading_translation(
     rgb: np.ndarray,
     render_mm: np.ndarray,
@@ -288,10 +297,7 @@ def shading_translation(
     if not finite.any():
         return None
     sh = shading_shift(rgb, render_mm, camera, mask, cfg)
-    if (
-        sh.ncc < cfg.shading_min_ncc
-        or max(abs(sh.dx_px), abs(sh.dy_px)) >= cfg.shading_max_shift_px
-    ):
+    if not shift_passes(sh, cfg):
         return None
     depth_mm = float(np.median(render_mm[finite]))
     return translation_for_shift(camera, sh.dx_px, sh.dy_px, depth_mm)[:3, 3]
