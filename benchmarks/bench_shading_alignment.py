@@ -93,12 +93,10 @@ def misalignment_px(
     v, u = np.nonzero(np.isfinite(depth_true_mm))
     if len(u) == 0:
         return float("nan")
-    P = camera.rays_cam()[v, u] * depth_true_mm[v, u][:, None]
+    P = camera.backproject(depth_true_mm)[v, u]
     C = np.linalg.inv(T_pose) @ T_true
-    Q = P @ C[:3, :3].T + C[:3, 3]
-    du = camera.fx * Q[:, 0] / Q[:, 2] + camera.cx - u
-    dv = camera.fy * Q[:, 1] / Q[:, 2] + camera.cy - v
-    return float(np.median(np.hypot(du, dv)))
+    uv, _ = camera.project(P @ C[:3, :3].T + C[:3, 3])
+    return float(np.median(np.hypot(uv[:, 0] - u, uv[:, 1] - v)))
 
 
 def _slope(measured: list[float], expected: list[float]) -> float:

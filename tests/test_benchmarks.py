@@ -400,3 +400,15 @@ def test_bench_shading_alignment_parallax_depth_and_misalignment_in_closed_form(
     assert bench.misalignment_px(plane, cam, np.eye(4), T) == pytest.approx(cam.fx * 0.3 / 12)
     assert bench.misalignment_px(plane, cam, np.eye(4), np.eye(4)) == pytest.approx(0.0)
     assert math.isnan(bench.misalignment_px(np.full((48, 64), np.nan), cam, np.eye(4), T))
+
+    # Through a distorting lens (the simulator's k1 = -0.18): no move, no misalignment;
+    # a sideways move displaces each pixel as OpenCV's own projection of its point does.
+    import cv2
+
+    lens = Camera(64, 48, cam.K, np.array([-0.18, 0.04, 4e-4, -3e-4, 0.0]))
+    assert bench.misalignment_px(plane, lens, np.eye(4), np.eye(4)) == pytest.approx(0.0, abs=1e-6)
+    P = lens.backproject(plane.astype(np.float32)).reshape(-1, 3)
+    uv, _ = cv2.projectPoints(P - [0.3, 0.0, 0.0], np.zeros(3), np.zeros(3), lens.K, lens.dist)
+    u, v = np.meshgrid(np.arange(64.0), np.arange(48.0))
+    moved = np.hypot(uv[:, 0, 0] - u.ravel(), uv[:, 0, 1] - v.ravel())
+    assert bench.misalignment_px(plane, lens, np.eye(4), T) == pytest.approx(np.median(moved))
