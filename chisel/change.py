@@ -328,19 +328,31 @@ def frame_threshold(m_raw: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> fl
     """
     if cfg.noise_k <= 0:
         return float(cfg.threshold_mm)
+    sigma = noise_sigma(m_raw, m_t)
+    return (
+        float(cfg.threshold_mm)
+        if sigma is None
+        else max(float(cfg.threshold_mm), cfg.noise_k * sigma)
+    )
+
+
+def noise_sigma(m_raw: np.ndarray, m_t: np.ndarray) -> float | None:
+    """Robust standard deviation of the noise of M' - M_t, mm (None: too few pixels).
+
+    m_raw : (H, W) float32 M' before imputation, mm, NaN = lost; m_t : (H, W) float32 M_t.
+    """
     r = (m_raw - m_t)[::2, ::2]
     r = r[np.isfinite(r)]
     neg = -r[r < 0]
     if neg.size < MIN_SCALE_PIXELS:
-        return float(cfg.threshold_mm)
+        return None
     # The spread of all residuals (1.4826 MAD) measures the estimate's noise when most of the
     # view is unchanged, heavy tails included. A large real change inflates it too, but only
     # on the deeper side (tissue is only removed), so it is capped at a few times the spread
     # of the shallower half, which is noise alone (0.6745 sigma is a half-normal's median).
     sigma_all = 1.4826 * float(np.median(np.abs(r - np.median(r))))
     sigma_neg = 1.4826 * float(np.median(neg))
-    sigma = min(sigma_all, NOISE_TAIL_RATIO * sigma_neg)
-    return max(float(cfg.threshold_mm), cfg.noise_k * sigma)
+    return min(sigma_all, NOISE_TAIL_RATIO * sigma_neg)
 
 
 def change_mask(

@@ -176,6 +176,38 @@ def test_correction_beyond_tracking_accuracy_is_not_applied(scene: dict) -> None
     assert all(f.registration is not None for f in report.frames)
 
 
+def test_correction_that_widens_the_depth_residual_is_not_applied(scene: dict, monkeypatch) -> None:
+    # The tracker is exact; the step's correction says 0.8 mm / 1.2 deg (within the 3 / 3
+    # default accuracy), as a network's shape error would. Placed with it, the estimate
+    # disagrees with the model in depth more than at the tracked poses: refused, the step
+    # is placed with the tracked poses and the report gives both spreads.
+    import chisel.batch as batch_mod
+
+    cam, model = scene["cam"], scene["model"]
+    P = poses(8, seed=2)
+    src = CallableDepth(lambda f: f.depth_mm * 0.037)
+    wrong = pose_error(0.8, 1.2, seed=5)
+    monkeypatch.setattr(
+        batch_mod, "_hand_eye", lambda *a, **k: (wrong, {"ok": True, "fitness_median": 1.0})
+    )
+    _, report = update_step(model, cam, frames(scene["bitten"], cam, P), src)
+    seq = report.sequence_registration
+    assert "widens the depth residual" in seq["rejected"]
+    assert seq["residual_sigma_corrected_mm"] > seq["residual_sigma_tracked_mm"]
+    assert all(f.registration is None for f in report.frames)
+
+
+def test_correction_of_a_true_error_narrows_the_depth_residual(scene: dict) -> None:
+    cam, model = scene["cam"], scene["model"]
+    P = poses(8, seed=2)
+    tracked = np.stack([T @ pose_error(1.0, 1.0, seed=3) for T in P])
+    src = CallableDepth(lambda f: f.depth_mm * 0.037)
+    _, report = update_step(model, cam, frames(scene["bitten"], cam, P, tracked), src)
+    seq = report.sequence_registration
+    assert "rejected" not in seq
+    assert seq["residual_sigma_corrected_mm"] < 0.5 * seq["residual_sigma_tracked_mm"]
+
+
 def test_streaming_frames_beyond_tracking_accuracy_keep_the_tracked_pose(scene: dict) -> None:
     cam, model, fr, src, strict = _two_degree_error(scene, 4)
     upd = ChiselUpdater(model, cam, src, strict)
