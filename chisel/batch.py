@@ -174,16 +174,15 @@ def _register_step(
     if solve_for_scale and cfg.relative_hand_eye == "frame":
         reason = "relative depth: every frame registered on its own (relative_hand_eye)"
         return scales, None, {**seq_reg, "not_applied": reason}, cfg
+    reason = ""
     excess = None if F is None else tracking_excess(F, cfg.registration)
     if excess:
         # A monocular estimate whose shape differs from the model's pulls ICP to a
         # "correction" the tracker cannot need (6-12 deg on the default experiment's
         # network depth, true hand-eye error 0.5 deg); placed that way, the estimate
         # carves unchanged tissue. Trust the tracker for this step instead.
-        reason = f"hand-eye {excess}: the step is placed with the tracked poses, scale only"
-        log.warning("%s", reason)
-        return scales, None, {**seq_reg, "rejected": reason}, replace(cfg, register=False)
-    if F is not None and solve_for_scale:
+        reason = f"hand-eye {excess}"
+    elif F is not None and solve_for_scale:
         tracked_mm, corrected_mm = _residual_spread(camera, estimates, renders, scales, F)
         seq_reg = {
             **seq_reg,
@@ -198,10 +197,12 @@ def _register_step(
             # 0.3 % of the pixels flagged as changed against the tool-free run's 2.2 %).
             reason = (
                 f"hand-eye correction widens the depth residual ({tracked_mm:.2f} -> "
-                f"{corrected_mm:.2f} mm): the step is placed with the tracked poses, scale only"
+                f"{corrected_mm:.2f} mm)"
             )
-            log.warning("%s", reason)
-            return scales, None, {**seq_reg, "rejected": reason}, replace(cfg, register=False)
+    if reason:
+        reason += ": the step is placed with the tracked poses, scale only"
+        log.warning("%s", reason)
+        return scales, None, {**seq_reg, "rejected": reason}, replace(cfg, register=False)
     return scales, F, seq_reg, cfg
 
 
@@ -218,8 +219,9 @@ def _residual_spread(
     for E, R, s in zip(estimates, renders, scales, strict=True):
         if s is None:
             continue
-        a = noise_sigma((s * E).astype(np.float32), R)
-        b = noise_sigma(warp_depth((s * E).astype(np.float32), camera, F), R)
+        placed = (s * E).astype(np.float32)
+        a = noise_sigma(placed, R)
+        b = noise_sigma(warp_depth(placed, camera, F), R)
         if a is not None and b is not None:
             tracked.append(a)
             corrected.append(b)

@@ -329,11 +329,9 @@ def frame_threshold(m_raw: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> fl
     if cfg.noise_k <= 0:
         return float(cfg.threshold_mm)
     sigma = noise_sigma(m_raw, m_t)
-    return (
-        float(cfg.threshold_mm)
-        if sigma is None
-        else max(float(cfg.threshold_mm), cfg.noise_k * sigma)
-    )
+    if sigma is None:
+        return float(cfg.threshold_mm)
+    return max(float(cfg.threshold_mm), cfg.noise_k * sigma)
 
 
 def noise_sigma(m_raw: np.ndarray, m_t: np.ndarray) -> float | None:
