@@ -63,6 +63,12 @@ class ChangeConfig:
     noise_k: float = 3.0
     """Noise-adaptive threshold: per frame, max(threshold_mm, noise_k * sigma) with sigma
     the robust spread of M' - M_t (see :func:`frame_threshold`) (0 = off: fixed threshold)."""
+    noise_with_depth: bool = False
+    """The noise-adaptive threshold grows with the render's depth: per pixel
+    max(threshold_mm, noise_k * sigma_rel * M_t), sigma_rel the robust spread of
+    (M' - M_t) / M_t. A learnt estimate's error is a fraction of the depth, so one
+    threshold per frame is set by its far field and hides a removal nearby
+    (:func:`frame_threshold`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "change")
@@ -320,26 +326,53 @@ def _morph(m: np.ndarray, op: int, px: int) -> np.ndarray:
     return cv2.morphologyEx(m, op, _square(px))
 
 
-def frame_threshold(m_raw: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> float:
-    """The change threshold of one frame, mm: ``cfg.threshold_mm``, raised to
-    ``cfg.noise_k`` robust standard deviations of the noise of M' - M_t when ``noise_k > 0``.
+def frame_threshold(m_raw: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig) -> tuple[float, float]:
+    """The change threshold of one frame: (threshold_mm, per_mm).
+
+    The threshold at a pixel is ``max(threshold_mm, per_mm * M_t)`` (:func:`threshold_map`).
+    Without ``cfg.noise_with_depth`` it is one number, ``cfg.threshold_mm`` raised to
+    ``cfg.noise_k`` robust standard deviations of the noise of M' - M_t (``per_mm`` = 0).
+    With it, ``per_mm`` is ``noise_k`` robust deviations of (M' - M_t) / M_t and
+    ``threshold_mm`` is ``cfg.threshold_mm``. ``noise_k`` = 0: the fixed threshold.
 
     m_raw : (H, W) float32 M' before imputation, mm, NaN = lost; m_t : (H, W) float32 M_t.
     """
+    floor = float(cfg.threshold_mm)
     if cfg.noise_k <= 0:
-        return float(cfg.threshold_mm)
-    sigma = noise_sigma(m_raw, m_t)
+        return floor, 0.0
+    sigma = noise_sigma(m_raw, m_t, relative=cfg.noise_with_depth)
     if sigma is None:
-        return float(cfg.threshold_mm)
-    return max(float(cfg.threshold_mm), cfg.noise_k * sigma)
+        return floor, 0.0
+    if cfg.noise_with_depth:
+        return floor, cfg.noise_k * sigma
+    return max(floor, cfg.noise_k * sigma), 0.0
 
 
-def noise_sigma(m_raw: np.ndarray, m_t: np.ndarray) -> float | None:
-    """Robust standard deviation of the noise of M' - M_t, mm (None: too few pixels).
+def threshold_map(threshold_mm: float, per_mm: float, m_t: np.ndarray) -> np.ndarray:
+    """(H, W) float32 change threshold per pixel, mm: ``max(threshold_mm, per_mm * M_t)``
+    (NaN where M_t is)."""
+    m_t = np.asarray(m_t, dtype=np.float32)
+    return np.maximum(np.float32(threshold_mm), np.float32(per_mm) * m_t)
+
+
+def typical_threshold(threshold_mm: float, per_mm: float, m_t: np.ndarray) -> float:
+    """One frame's threshold as a number, mm: at the median depth of its render (the
+    threshold itself when it does not grow with depth)."""
+    if per_mm <= 0:
+        return float(threshold_mm)
+    z = np.asarray(m_t)[np.isfinite(m_t)]
+    return float(threshold_mm) if z.size == 0 else max(threshold_mm, per_mm * float(np.median(z)))
+
+
+def noise_sigma(m_raw: np.ndarray, m_t: np.ndarray, relative: bool = False) -> float | None:
+    """Robust standard deviation of the noise of M' - M_t, mm (None: too few pixels);
+    ``relative``: of (M' - M_t) / M_t, a fraction.
 
     m_raw : (H, W) float32 M' before imputation, mm, NaN = lost; m_t : (H, W) float32 M_t.
     """
     r = (m_raw - m_t)[::2, ::2]
+    if relative:
+        r = r / m_t[::2, ::2]
     r = r[np.isfinite(r)]
     neg = -r[r < 0]
     if neg.size < MIN_SCALE_PIXELS:
@@ -354,17 +387,25 @@ def noise_sigma(m_raw: np.ndarray, m_t: np.ndarray) -> float | None:
 
 
 def change_mask(
-    m_prime: np.ndarray, m_t: np.ndarray, cfg: ChangeConfig, threshold_mm: float | None = None
+    m_prime: np.ndarray,
+    m_t: np.ndarray,
+    cfg: ChangeConfig,
+    threshold_mm: float | np.ndarray | None = None,
 ) -> np.ndarray:
     """Cleaned change mask m = (M' - M_t) > threshold.
 
     m_prime, m_t : (H, W) float32 depth, mm, NaN = invalid (invalid -> unchanged).
-    threshold_mm : the frame's threshold (None = ``cfg.threshold_mm``).
+    threshold_mm : the frame's threshold, a number or (H, W) per pixel (:func:`threshold_map`)
+    (None = ``cfg.threshold_mm``).
     Returns (H, W) bool, True = changed (tissue removed along this pixel's ray).
     """
     if m_prime.shape != m_t.shape:
         raise InvalidInputError("m_prime", f"shape {m_prime.shape} differs from M_t {m_t.shape}")
-    thr = cfg.threshold_mm if threshold_mm is None else float(threshold_mm)
+    thr: float | np.ndarray = cfg.threshold_mm if threshold_mm is None else threshold_mm
+    if np.ndim(thr) == 0:
+        thr = float(thr)
+    elif np.shape(thr) != m_t.shape:
+        raise InvalidInputError("threshold_mm", f"shape {np.shape(thr)} is not M_t's {m_t.shape}")
     with np.errstate(invalid="ignore"):
         raw = (m_prime - m_t) > thr
     raw &= np.isfinite(m_prime) & np.isfinite(m_t)
@@ -392,7 +433,7 @@ def clean_mask(mask: np.ndarray, cfg: ChangeConfig) -> np.ndarray:
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, cx, cy, dist,
-                        threshold_mm, visible_mm, contradict, support, observed):  # fmt: skip
+                        threshold_mm, per_mm, visible_mm, contradict, support, observed):  # fmt: skip
     N, H, W = masks.shape
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for i in numba.prange(N):
@@ -428,10 +469,11 @@ def _consistency_kernel(masks, renders, diffs, rays, T_wc, T_cw, used, fx, fy, c
                     # ...and its own estimate also says the surface moved away (support), or
                     # says it is still there (contradiction); in between it is ambiguous
                     # (e.g. an oblique view of the cut's side face just behind) and not counted.
-                    if dj > threshold_mm[j]:
+                    thr = max(threshold_mm[j], per_mm[j] * rj)
+                    if dj > thr:
                         n_sup += 1
                         n_obs += 1
-                    elif dj <= contradict * threshold_mm[j]:
+                    elif dj <= contradict * thr:
                         n_obs += 1
                 support[i, v, u] = n_sup
                 observed[i, v, u] = n_obs
@@ -447,6 +489,7 @@ def multiview_support(
     threshold_mm: float | np.ndarray,
     visible_mm: float,
     contradict_fraction: float = 1.0,
+    per_mm: float | np.ndarray = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """How many other frames confirm each changed pixel: (support, observed), (N, H, W) int32.
 
@@ -459,8 +502,9 @@ def multiview_support(
     For a changed pixel of frame i, its old surface point (M_t) is projected into every other
     used frame j. Frame j *observes* the point when its own render reaches it there (within
     ``visible_mm``: not occluded, not beside a silhouette) and its estimate is valid; it
-    *supports* the change when its estimate is deeper than its render by ``threshold_mm``
-    (a number, or (N,) per-frame thresholds), and it contradicts it when the estimate is
+    *supports* the change when its estimate is deeper than its render by its threshold there,
+    ``max(threshold_mm, per_mm * render)`` (each a number, or (N,) per frame:
+    :func:`frame_threshold`), and it contradicts it when the estimate is
     deeper by at most ``contradict_fraction`` times that threshold; an observation in
     between is ambiguous and counts in neither (``observed`` = supporters + contradictors;
     1.0 = every observation counts).
@@ -488,6 +532,7 @@ def multiview_support(
         np.ascontiguousarray(used, dtype=np.bool_), camera.fx, camera.fy, camera.cx, camera.cy,
         np.ascontiguousarray(camera.dist, dtype=np.float64),
         np.broadcast_to(np.asarray(threshold_mm, dtype=np.float64), (N,)).copy(),
+        np.broadcast_to(np.asarray(per_mm, dtype=np.float64), (N,)).copy(),
         float(visible_mm), float(contradict_fraction), support, observed,
     )  # fmt: skip
     return support, observed

@@ -23,6 +23,8 @@ from chisel.change import (
     multiview_support,
     shift_to_render,
     solve_scale,
+    threshold_map,
+    typical_threshold,
     warp_depth,
 )
 from chisel.core.errors import EmptyResultError, InvalidInputError
@@ -73,7 +75,10 @@ class Detection:
     scale: float = float("nan")
     registration: dict | None = None
     threshold_mm: float = float("nan")
-    """The frame's change threshold, mm (see ``ChangeConfig.noise_k``)."""
+    """The frame's change threshold, mm (see ``ChangeConfig.noise_k``)..."""
+    threshold_per_mm: float = 0.0
+    """... at a pixel ``max(threshold_mm, threshold_per_mm * M_t)``: it grows with depth
+    with ``ChangeConfig.noise_with_depth`` (:func:`chisel.change.frame_threshold`)."""
     shift_mm: float = 0.0
     """Depth shift of a relative estimate (``UpdateConfig.relative_depth``), mm: M' is
     ``a * scale * estimate + shift_mm`` with ``a`` near 1 (fitted with the shift)."""
@@ -96,6 +101,14 @@ class Detection:
     """(H, W) bool pixels whose estimate other frames confirmed, fused into the voxels the
     model never observed where carving fused nothing (:func:`chisel.fill.confirm_fill`;
     batch); None = none."""
+
+    @property
+    def typical_threshold_mm(self) -> float:
+        """The threshold as one number, mm: at the render's median depth where it grows
+        with depth (what carving's tolerance, the precision test and the report take)."""
+        if self.threshold_per_mm <= 0 or self.m_t is None:
+            return self.threshold_mm
+        return typical_threshold(self.threshold_mm, self.threshold_per_mm, self.m_t)
 
 
 class HandEye:
@@ -262,16 +275,19 @@ def detect(inp: FrameInput, ctx: Context) -> Detection:
     if reg is not None and reg.ok and "rejected" not in reg.extra:
         correction = invert_rigid(T) @ reg.T_model_from_est @ T
     m_prime = impute(m_raw, R)
-    threshold_mm = frame_threshold(m_raw, R, cfg.change)
+    floor_mm, per_mm = frame_threshold(m_raw, R, cfg.change)
     return Detection(
         index=inp.frame.index,
         used=True,
         scale=scale,
         registration=None if reg is None else reg.to_dict(),
-        threshold_mm=threshold_mm,
+        threshold_mm=floor_mm,
+        threshold_per_mm=per_mm,
         shift_mm=shift_mm,
         T_world_from_cam=T,
-        mask=change_mask(m_prime, R, cfg.change, threshold_mm),
+        mask=change_mask(
+            m_prime, R, cfg.change, threshold_map(floor_mm, per_mm, R) if per_mm > 0 else floor_mm
+        ),
         m_prime=m_prime,
         m_t=R,
         m_raw=m_raw,
@@ -376,7 +392,7 @@ def confirm_changes(dets: list[Detection], camera: Camera, cfg: ChangeConfig) ->
     support, observed = multiview_support(
         masks, renders, estimates, camera, stack_poses(dets), used,
         np.array([d.threshold_mm if d.used else np.inf for d in dets]), cfg.visible_mm,
-        cfg.contradict_fraction,
+        cfg.contradict_fraction, np.array([d.threshold_per_mm for d in dets]),
     )  # fmt: skip
     keep = (support >= cfg.min_views) & (support >= cfg.min_agreement * observed)
     out = []

@@ -26,7 +26,10 @@ class FrameReport:
     unconfirmed_px: int = 0
     """Changed pixels dropped because other frames did not confirm them (batch)."""
     threshold_mm: float = float("nan")
-    """The change threshold used for this frame, mm (see ``ChangeConfig.noise_k``)."""
+    """The change threshold used for this frame, mm (see ``ChangeConfig.noise_k``); where it
+    grows with depth, its value at the render's median depth ..."""
+    threshold_per_mm: float = 0.0
+    """... and its growth, mm per mm of depth (``ChangeConfig.noise_with_depth``; 0 = none)."""
     deleted_px: int = 0
     """Changed pixels whose first layer was deleted up to a surface the model holds (for a
     noisy frame with ``UpdateConfig.noisy_votes`` > 1: voted for deletion; the voxels go at
@@ -55,6 +58,7 @@ class FrameReport:
             "voxels_updated": int(self.voxels_updated),
             "unconfirmed_px": int(self.unconfirmed_px),
             "threshold_mm": None if not np.isfinite(self.threshold_mm) else self.threshold_mm,
+            "threshold_per_mm": float(self.threshold_per_mm),
             "deleted_px": int(self.deleted_px),
             "uncarved_px": int(self.uncarved_px),
             "voxels_deleted": int(self.voxels_deleted),

@@ -120,19 +120,21 @@ def fuse(
     if not det.used:
         return FrameReport(
             det.index, False, det.reason, det.scale, det.registration,
-            unconfirmed_px=det.unconfirmed_px, threshold_mm=det.threshold_mm,
+            unconfirmed_px=det.unconfirmed_px, threshold_mm=det.typical_threshold_mm,
+            threshold_per_mm=det.threshold_per_mm,
         )  # fmt: skip
     if det.mask is None or det.m_prime is None or det.m_t is None or det.T_world_from_cam is None:
         raise InvalidInputError("detection", f"frame {det.index}: a used detection has no maps")
     mask = fuse_mask = det.mask
+    tol_mm = det.typical_threshold_mm
     deleted_px = voxels_deleted = uncarved_px = 0
     if cfg.carve == "deletion" and mask.any():
         # Deletion first: where the model already holds the surface behind the
         # removed layer, delete the layer and keep that surface; fuse the new
         # depth only where the model holds nothing behind.
         status, voxels_deleted = carve_first_layer(
-            model, camera, det.T_world_from_cam, det.m_t, det.m_prime, mask, det.threshold_mm,
-            reset=reset, precise=carve_precise(det.threshold_mm, cfg, estimate, reliable),
+            model, camera, det.T_world_from_cam, det.m_t, det.m_prime, mask, tol_mm,
+            reset=reset, precise=carve_precise(tol_mm, cfg, estimate, reliable),
             votes=votes,
             noisy_votes=cfg.noisy_votes, noisy_layer_mm=cfg.noisy_layer_mm,
             noisy_max_depth_mm=cfg.noisy_max_depth_mm, rim_px=cfg.rim_px,
@@ -171,7 +173,8 @@ def fuse(
         changed_fraction=float(mask.sum() / max(int(valid.sum()), 1)),
         voxels_updated=voxels_updated,
         unconfirmed_px=det.unconfirmed_px,
-        threshold_mm=det.threshold_mm,
+        threshold_mm=tol_mm,
+        threshold_per_mm=det.threshold_per_mm,
         deleted_px=deleted_px,
         uncarved_px=uncarved_px,
         voxels_deleted=voxels_deleted,

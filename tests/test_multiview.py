@@ -15,7 +15,13 @@ from test_updater_scenes import (
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model
-from chisel.change import ChangeConfig, frame_threshold, multiview_support
+from chisel.change import (
+    ChangeConfig,
+    change_mask,
+    frame_threshold,
+    multiview_support,
+    threshold_map,
+)
 from chisel.core.errors import InvalidInputError
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import CallableDepth, SequenceDepth
@@ -70,6 +76,12 @@ def test_support_counts_on_a_plane(scene: dict) -> None:
     support, observed = multiview_support(masks, renders, estimates, cam, P, used, thr, 1.0)
     np.testing.assert_array_equal(observed, observed3)
     assert np.all(support[0][on] <= observed[0][on]) and np.any(support[0][on] < observed[0][on])
+    # The same through a threshold that grows with depth: 1 mm per mm puts frame 1's at its
+    # render's depth, far above 3 mm; the other frames keep 1 mm.
+    per = np.array([0.0, 1.0, 0.0, 0.0, 0.0])
+    grown = multiview_support(masks, renders, estimates, cam, P, used, 1.0, 1.0, 1.0, per)
+    np.testing.assert_array_equal(grown[0], support)
+    np.testing.assert_array_equal(grown[1], observed)
     with pytest.raises(InvalidInputError, match="renders_mm"):
         multiview_support(masks, renders[:4], estimates, cam, P, used, 1.0, 1.0)
     with pytest.raises(InvalidInputError, match="T_world_from_cams"):
@@ -122,23 +134,51 @@ def test_frame_threshold_follows_the_noise() -> None:
     m_t = np.full((120, 160), 25.0, np.float32)
     cfg = ChangeConfig(noise_k=3.0, threshold_mm=1.0)
     # Exact depth: the fixed threshold.
-    assert frame_threshold(m_t.copy(), m_t, cfg) == 1.0
+    assert frame_threshold(m_t.copy(), m_t, cfg) == (1.0, 0.0)
     # Gaussian noise of 0.8 mm: about 3 x 0.8 mm.
     noisy = (m_t + rng.normal(0.0, 0.8, m_t.shape)).astype(np.float32)
-    assert frame_threshold(noisy, m_t, cfg) == pytest.approx(2.4, rel=0.1)
+    assert frame_threshold(noisy, m_t, cfg)[0] == pytest.approx(2.4, rel=0.1)
     # Half of the view really 3 mm deeper, with 0.2 mm noise: capped by the shallow side's
     # spread, the threshold stays far below the 3 mm change.
     half = (m_t + rng.normal(0.0, 0.2, m_t.shape)).astype(np.float32)
     half[:, :80] += 3.0
-    assert frame_threshold(half, m_t, cfg) < 2.0
+    assert frame_threshold(half, m_t, cfg)[0] < 2.0
     # Off: the fixed threshold whatever the noise.
-    assert frame_threshold(noisy, m_t, ChangeConfig(noise_k=0.0)) == 1.0
+    assert frame_threshold(noisy, m_t, ChangeConfig(noise_k=0.0)) == (1.0, 0.0)
     with pytest.raises(InvalidInputError, match="noise_k"):
         ChangeConfig(noise_k=-1.0)
     with pytest.raises(InvalidInputError, match="min_agreement"):
         ChangeConfig(min_agreement=1.5)
     with pytest.raises(InvalidInputError, match="min_views"):
         ChangeConfig(min_views=-1)
+
+
+def test_threshold_grows_with_depth_for_a_relative_error() -> None:
+    # A wall slanting from 10 to 40 mm deep, seen by an estimate whose error is 3 % of the
+    # depth (a network's: abs-rel), with 2 mm of tissue removed where it is 11-16 mm deep.
+    # One threshold per frame is 3 robust deviations of all of M' - M_t, set by the far
+    # side (~2.2 mm), and misses the removal; 3 deviations of the relative error
+    # (~0.09 x depth, 1.0-1.5 mm there) find it, and flag no unchanged pixel either way.
+    H, W = 120, 160
+    m_t = np.tile(np.linspace(10.0, 40.0, W, dtype=np.float32), (H, 1))
+    removed = np.zeros((H, W), bool)
+    removed[40:80, 8:32] = True
+    truth = np.where(removed, m_t + 2.0, m_t)
+    fixed, grows = ChangeConfig(), ChangeConfig(noise_with_depth=True)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        est = (truth * (1.0 + rng.normal(0.0, 0.03, (H, W)))).astype(np.float32)
+        one, per = frame_threshold(est, m_t, fixed)
+        assert per == 0.0 and one == pytest.approx(3 * 0.03 * 25.0, rel=0.15)
+        floor, per = frame_threshold(est, m_t, grows)
+        assert floor == 1.0 and per == pytest.approx(3 * 0.03, rel=0.15)
+        assert not change_mask(est, m_t, fixed, one).any()
+        found = change_mask(est, m_t, grows, threshold_map(floor, per, m_t))
+        assert found[removed].mean() > 0.85 and not found[~removed].any()
+    # Exact depth: the floor, whichever rule.
+    assert frame_threshold(m_t.copy(), m_t, grows) == (1.0, 0.0)
+    with pytest.raises(InvalidInputError, match="threshold_mm"):
+        change_mask(m_t, m_t, grows, np.ones((H, W + 1), np.float32))
 
 
 def test_one_frames_depth_error_is_not_carved(scene: dict) -> None:
