@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ from typing import Any
 from sim.dataset import parse_seeds
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_workflow import run_workflow  # noqa: E402
+from bench_workflow import run_workflow, work_folder  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXACT, NETWORK, NONE = "depth_ablation", "updated", "no_update"
@@ -148,10 +147,16 @@ def main() -> int:
     parser.add_argument(
         "--seeds", help="phantom seeds, e.g. '0-4' (default: the config's table_seeds)"
     )
-    parser.add_argument("--workdir", type=Path, help="results folder (default: a temp dir); reused")
+    parser.add_argument(
+        "--workdir", type=Path, help="results folder, reused (default: a temp dir, removed at exit)"
+    )
     parser.add_argument("--cores", type=int, default=2)
     args = parser.parse_args()
-    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-fidelity-"))
+    with work_folder(args.workdir, "chisel-fidelity-") as workdir:
+        return report(args, workdir)
+
+
+def report(args: argparse.Namespace, workdir: Path) -> int:
     wanted = parse_seeds(args.seeds) if args.seeds else None
     overrides = {"table_seeds": wanted} if wanted else None
     ran = run_workflow("table", workdir, args.configfile, args.cores, overrides)
@@ -166,7 +171,7 @@ def main() -> int:
             continue
         per_seed[seed] = seed_figures(json.loads(path.read_text()))
     print(f"experiment: {experiment}")
-    print(f"workdir: {workdir}")
+    print(f"workdir: {workdir if args.workdir else '(removed; --workdir keeps it)'}")
     print(f"seeds: {','.join(str(s) for s in sorted(per_seed))}")
     for seed, figs in sorted(per_seed.items()):
         for name, value in figs.items():

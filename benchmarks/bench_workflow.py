@@ -8,12 +8,13 @@ time. `--configfile config/smoke.yaml` times the smoke experiment (goal: <= 3 mi
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -53,20 +54,37 @@ def run_workflow(
     return next(workdir.joinpath("results").iterdir()).name, wall_s
 
 
+@contextlib.contextmanager
+def work_folder(workdir: Path | None, prefix: str) -> Iterator[Path]:
+    """``workdir``, or a temp folder removed at exit: a run leaves ~0.6 GB per seed, and a
+    benchmark run again and again must not fill the disk."""
+    if workdir is not None:
+        yield workdir
+        return
+    with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+        yield Path(tmp)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--configfile", type=Path, default=ROOT / "config" / "config.yaml")
-    parser.add_argument("--workdir", type=Path, help="keep results here (default: a temp dir)")
+    parser.add_argument(
+        "--workdir", type=Path, help="keep results here (default: a temp dir, removed at exit)"
+    )
     parser.add_argument("--target", default="all")
     args = parser.parse_args()
-    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="chisel-bench-"))
+    with work_folder(args.workdir, "chisel-bench-") as workdir:
+        return report(args, workdir)
+
+
+def report(args: argparse.Namespace, workdir: Path) -> int:
     ran = run_workflow(args.target, workdir, args.configfile)
     if ran is None:
         return 1
     experiment, wall_s = ran
     metrics = json.loads((workdir / "results" / experiment / "metrics.json").read_text())
     print(f"experiment: {experiment}")
-    print(f"workdir: {workdir}")
+    print(f"workdir: {workdir if args.workdir else '(removed; --workdir keeps it)'}")
     for step in metrics["steps"]:
         label = step["label"].replace(" ", "_")
         for method, cell in step["methods"].items():
