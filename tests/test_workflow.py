@@ -94,6 +94,14 @@ def test_shading_correction_reaches_the_estimate_rows_only(tmp_path: Path) -> No
     assert not any("align-by-shading" in ln for ln in estimates), estimates
 
 
+def test_experiments_grow_the_change_threshold_with_depth() -> None:
+    # Measured on the network rows (docs/results.md, forty-fifth session); every experiment
+    # runs it, so that their tables compare.
+    for name in ("config.yaml", "smoke.yaml", "fine.yaml", "tools.yaml"):
+        update = yaml.safe_load((ROOT / "config" / name).read_text())["update"]
+        assert update["change"]["noise_with_depth"] is True, name
+
+
 def test_render_sim_section_reaches_sim_render_which_checks_it(tmp_path: Path) -> None:
     cfg = tmp_path / "sim.yaml"
     cfg.write_text(yaml.safe_dump({"render": {"sim": {"tools": {"fraction": 1.5}}}}))
