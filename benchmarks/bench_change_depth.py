@@ -53,7 +53,7 @@ from chisel.depth.prior_data import build_prior_set, phantom_step_mesh, read_ste
 from chisel.io.sequence import Frame, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from host import cpu_simd  # noqa: E402
+from host import cpu_simd, shipped_noise_with_depth  # noqa: E402
 
 
 def _median_scaled(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -68,6 +68,7 @@ def _stream_update(ref, seq: Sequence, change, repeats: int = 5) -> None:  # noq
     frame's detection and carving) against ``process`` frame by frame, same run, each the
     median of ``repeats`` alternating passes over the step."""
     from chisel.build import BuildConfig, build_preop_model
+    from chisel.change import ChangeConfig
     from chisel.shading import ShadingConfig
     from chisel.update_config import UpdateConfig
     from chisel.updater import ChiselUpdater
@@ -82,8 +83,12 @@ def _stream_update(ref, seq: Sequence, change, repeats: int = 5) -> None:  # noq
     variants = {
         "no_registration": UpdateConfig(register=False),
         "registration": UpdateConfig(register=True),
-        # as the shipped experiments run the change-aware row: poses corrected by shading
-        "registration_shading": UpdateConfig(shading=ShadingConfig(align_by_shading=True)),
+        # as the shipped experiments run the change-aware row: poses corrected by shading,
+        # the change threshold growing with depth where config/config.yaml says so
+        "registration_shading": UpdateConfig(
+            shading=ShadingConfig(align_by_shading=True),
+            change=ChangeConfig(noise_with_depth=shipped_noise_with_depth()),
+        ),
     }
     for name, cfg in variants.items():
         runs: dict[str, list[float]] = {"process": [], "process_stream": []}
@@ -173,6 +178,7 @@ def main() -> None:
         _stream_update(ref, seq, change)
     print(f"image_size: {seq.camera.width}x{seq.camera.height}")
     print(f"cpu_simd: {cpu_simd()}")
+    print(f"noise_with_depth: {shipped_noise_with_depth()}")
     print(f"threads: {args.threads}")
     print(f"load_average_1min: {Path('/proc/loadavg').read_text().split()[0]}")
     print(f"stream_render_plus_infer_fps_median: {1.0 / float(np.median(times)):.1f}")

@@ -34,6 +34,10 @@ Measured, at 320x256 and 0.5 mm voxels by default:
   two steps through ``process_stream`` (the shading's shift on a thread of its own;
   ``update_shading_stream_same_model`` checks it carves what ``process`` carves).
 
+Every update below grows its change threshold with depth as the shipped experiments do
+(``update.change.noise_with_depth`` in ``config/config.yaml``; ``--no-noise-with-depth``:
+the library's default, one threshold per frame).
+
 Goals: update_fps >= 30, update_fps_from_ct >= 30 (with the shading too, streaming),
 fusion_ratio_vs_open3d >= 1.0, peak_rss_mib <= 4096.
 Both fusions are timed best of ``--repeats`` (default 9) alternating passes: Open3D's
@@ -61,6 +65,7 @@ import trimesh
 
 from chisel.batch import update_step
 from chisel.build import BuildConfig, build_preop_model, preop_bounds
+from chisel.change import ChangeConfig
 from chisel.core.geometry import Camera, invert_rigid, look_at, rotation_angle_deg
 from chisel.core.raycast import MeshRaycaster
 from chisel.ct_model import ct_from_mesh
@@ -74,7 +79,7 @@ from chisel.update_config import UpdateConfig
 from chisel.updater import ChiselUpdater
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from host import cpu_simd  # noqa: E402
+from host import cpu_simd, shipped_noise_with_depth  # noqa: E402
 
 
 def _pose_error(shift_mm: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
@@ -210,6 +215,12 @@ def main() -> int:
         default=UpdateConfig().frame_ransac,
         help="UpdateConfig.frame_ransac for every update below (default: the config's)",
     )
+    ap.add_argument(
+        "--noise-with-depth",
+        action=argparse.BooleanOptionalAction,
+        default=shipped_noise_with_depth(),
+        help="ChangeConfig.noise_with_depth for every update below (default: config/config.yaml's)",
+    )
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
@@ -257,8 +268,11 @@ def main() -> int:
         )
         for i in range(args.frames)
     ]
-    ucfg = UpdateConfig(frame_ransac=args.frame_ransac)
+    ucfg = UpdateConfig(
+        frame_ransac=args.frame_ransac, change=ChangeConfig(noise_with_depth=args.noise_with_depth)
+    )
     print(f"frame_ransac: {args.frame_ransac}")
+    print(f"noise_with_depth: {args.noise_with_depth}")
     k = 0.0371  # unknown monocular scale
     source = CallableDepth(lambda f: f.depth_mm * k)
     update_step(model, cam, frames[:5], source, ucfg)  # warm-up (JIT, Open3D)

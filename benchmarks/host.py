@@ -7,6 +7,9 @@ the renderer's packages) can import it.
 from __future__ import annotations
 
 import resource
+from pathlib import Path
+
+SHIPPED_CONFIG = Path(__file__).resolve().parents[1] / "config" / "config.yaml"
 
 
 def cpu_simd() -> str:
@@ -25,3 +28,13 @@ def rss_mb() -> float:
     with open("/proc/self/statm") as fh:
         pages = int(fh.read().split()[1])
     return pages * resource.getpagesize() / 2**20
+
+
+def shipped_noise_with_depth() -> bool:
+    """The shipped experiment's ``update.change.noise_with_depth`` (``config/config.yaml``,
+    the setting's one home; the library's default is off), for benchmarks that time the
+    update as the workflow runs it."""
+    import yaml  # here: the torch-only benchmarks never call this
+
+    cfg = yaml.safe_load(SHIPPED_CONFIG.read_text())
+    return bool(cfg.get("update", {}).get("change", {}).get("noise_with_depth", False))
