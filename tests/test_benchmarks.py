@@ -100,6 +100,7 @@ def test_bench_update_prints_fusion_ratio_and_update_fps_last() -> None:
     assert figures["update_shading_stream_same_model"] == "True"
     # It times the update as the shipped experiments run it (config/config.yaml).
     assert figures["noise_with_depth"] == "True"
+    assert number(figures["noise_with_depth_fps_ratio"]) > 0
 
 
 def test_bench_dataset_prints_ratio_last_and_names_its_generator() -> None:
