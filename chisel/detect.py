@@ -106,7 +106,7 @@ class Detection:
     def typical_threshold_mm(self) -> float:
         """The threshold as one number, mm: at the render's median depth where it grows
         with depth (what carving's tolerance, the precision test and the report take)."""
-        if self.threshold_per_mm <= 0 or self.m_t is None:
+        if self.m_t is None:
             return self.threshold_mm
         return typical_threshold(self.threshold_mm, self.threshold_per_mm, self.m_t)
 
