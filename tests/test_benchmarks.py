@@ -340,6 +340,35 @@ def test_bench_fidelity_figures_from_a_table() -> None:
     assert fid.parse_seeds("0-2,5") == [0, 1, 2, 5]
 
 
+def test_bench_change_depth_streams_as_shipped_and_prints_abs_rel_last(tmp_path: Path) -> None:
+    # A one-phantom, one-bite evaluation dataset at 64 x 48 (about 10 s to render).
+    data = tmp_path / "eval"
+    r = subprocess.run(
+        [sys.executable, "-m", "sim", "dataset", "--seeds", "0", "--out", str(data),
+         "--bites", "1", "--phantom-args", "--procedure uncinectomy", "--frames", "4",
+         "--preop-frames", "2", "--spp", "1", "--width", "64", "--height", "48"],
+        capture_output=True, text=True, cwd=ROOT, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    pairs = run_bench("bench_change_depth.py", "--data", str(data), "--stream-update")
+    modes = ("no_registration", "registration", "registration_shading")
+    figures = check_contract(
+        pairs,
+        "change_aware_abs_rel",
+        ["frames", "change_aware_vs_tracked_abs_rel_near_change", "prior_vs_tracked_abs_rel_unchanged",
+         "monocular_vs_true_abs_rel_near_change", "change_aware_mask_precision", "cpu_simd",
+         "noise_with_depth", "stream_render_plus_infer_fps_median"]
+        + [f"stream_update_{m}_{k}" for m in modes for k in ("fps", "frame_by_frame_fps")],
+    )  # fmt: skip
+    assert int(figures["frames"].split()[0]) == 4  # the step's four frames, none skipped
+    # The prior is the tracked-pose target wherever nothing changed: no error there.
+    assert number(figures["prior_vs_tracked_abs_rel_unchanged"]) == 0.0
+    assert number(figures["prior_vs_tracked_abs_rel_near_change"]) > 0.0
+    # The shipped row's stream follows config/config.yaml (the threshold grows with depth).
+    assert figures["noise_with_depth"] == "True"
+    assert all(number(figures[f"stream_update_{m}_fps"]) > 0 for m in modes)
+
+
 def test_bench_change_bounds_next_surface_and_figures_against_closed_forms() -> None:
     """The next surface behind a layer is the far slab's face; each figure of a frame with
     a known change takes the value worked out by hand."""
