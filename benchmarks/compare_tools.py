@@ -14,7 +14,14 @@ Reads two finished default-target runs of the workflow (``snakemake --cores 2`` 
 * per step and method, ``missing_fraction`` of both runs: the error counts only pixels
   where the model shows a surface;
 * frames used by each update and the mean changed-pixel fraction of its frames, tool and
-  tool-free frames apart (``update.json``).
+  tool-free frames apart (``update.json``);
+* per step, each run's hand-eye decision for the step (``sequence_registration`` of
+  ``update.json``): the correction F's rotation and shift, applied or refused and by
+  which gate, and how far F stands from the tracking-accuracy gate in F's own standard
+  errors (from the reported ``z_rotation`` / ``z_translation``; the gate from the run's
+  ``update_config.yaml``). A decision under one standard error from the gate is one the
+  frames do not determine, and ``FLIP`` marks a step the two runs decided apart: the
+  cause of most steps that fail the 10 % goal (docs/results.md, forty-seventh session).
 
 Several runs of each (``--free A B --tools C D``: the same renders, the per-patient
 fine-tunings seeded apart with ``depth.finetune_seed_offset``) compare the means over the
@@ -37,7 +44,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from chisel.core.config import load_config_file
+from chisel.core.geometry import rotation_angle_deg
 from chisel.io.images import decode_image
+from chisel.update_config import UpdateConfig
 
 LOW, HIGH = 0.9, 1.1
 MORE_HOLES = 0.005
@@ -123,6 +133,46 @@ def update_stats(report: Path, tool_frames: set[int]) -> dict:
     }
 
 
+def accuracy_gate(run: Path) -> tuple[float, float]:
+    """The run's tracking-accuracy gate (mm, deg): its ``update_config.yaml``, as ``chisel
+    update --config`` reads it, or the library's default without one."""
+    path = run / "update_config.yaml"
+    cfg = load_config_file(UpdateConfig, path) if path.exists() else UpdateConfig()
+    return cfg.registration.tracking_accuracy_mm, cfg.registration.tracking_accuracy_deg
+
+
+def hand_eye_decision(report: Path, gate_mm: float, gate_deg: float) -> dict | None:
+    """A step's hand-eye decision (None: the step estimated no correction F).
+
+    ``margin_se``: how many of F's standard errors F would have to move for the accuracy
+    gate to decide the other way (inside the gate: to the nearer bound; outside it: until
+    every exceeded bound is met); None where the frames give no standard error.
+    """
+    reg = json.loads(report.read_text()).get("sequence_registration") or {}
+    he = reg.get("hand_eye") or {}
+    if "T_cam_from_corrected_cam" not in he:
+        return None
+    F = np.asarray(he["T_cam_from_corrected_cam"], dtype=float)
+    deg, mm = rotation_angle_deg(F[:3, :3]), float(np.linalg.norm(F[:3, 3]))
+    # z = size / standard error; z None = the frames agree exactly (no error at all).
+    z_deg, z_mm = he.get("z_rotation"), he.get("z_translation")
+    se = [
+        0.0 if z is None else (size / z if z > 0 else None)
+        for size, z in ((mm, z_mm), (deg, z_deg))
+    ]
+    rejected = str(reg.get("rejected", ""))
+    decision = "applied"
+    if rejected:
+        decision = "refused: accuracy" if "tracking accuracy" in rejected else "refused: depth"
+    margin = None
+    if all(e is not None for e in se):
+        d = [(size - gate) for size, gate in ((mm, gate_mm), (deg, gate_deg))]
+        z = [np.inf if e == 0 else abs(x) / e for x, e in zip(d, se, strict=True)]
+        outside = [zi for x, zi in zip(d, z, strict=True) if x > 0]
+        margin = float(max(outside) if outside else min(z))
+    return {"deg": deg, "mm": mm, "decision": decision, "margin_se": margin}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--free", type=Path, nargs="+", default=[Path("results/default")])
@@ -143,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         if all((s, m) in mt and (s, m) in mf for s in steps)
     ]
 
-    out: dict = {"tools": {}, "rows": {}, "updates": {}}
+    out: dict = {"tools": {}, "rows": {}, "updates": {}, "hand_eye": {}}
     print("# tool statistics (tools run, intraoperative sequences)")
     print(
         "step | frames | in a tool episode | tool pixels in view | mean / max tool px fraction of the field stop"
@@ -244,6 +294,33 @@ def main(argv: list[str] | None = None) -> int:
                 f"({ut['used_tool_frames']} with tool); changed px tool-frames free/tools "
                 f"{fmt(uf['changed_tool'])}/{fmt(ut['changed_tool'])}, other frames "
                 f"{fmt(uf['changed_free'])}/{fmt(ut['changed_free'])}"
+            )
+    gates = {"free": accuracy_gate(free_dir), "tools": accuracy_gate(tools_dir)}
+    print(
+        "\n# hand-eye decision per step: F's rotation / shift, the decision, F's distance from "
+        "the accuracy gate in its standard errors; tool-free | tools"
+    )
+    for m in methods:
+        for s in steps:
+            dec = {
+                run: hand_eye_decision(
+                    d / sub / "base" / m / f"step_{s:02d}" / "update.json", *gates[run]
+                )
+                for run, d in (("free", free_dir), ("tools", tools_dir))
+                if (d / sub / "base" / m / f"step_{s:02d}" / "update.json").exists()
+            }
+            if len(dec) < 2 or dec["free"] is None or dec["tools"] is None:
+                continue
+            flip = dec["free"]["decision"].split(":")[0] != dec["tools"]["decision"].split(":")[0]
+            out["hand_eye"][f"{m}/{s}"] = {**dec, "flip": flip}
+
+            def fmt_d(d: dict) -> str:
+                margin = "-" if d["margin_se"] is None else f"{d['margin_se']:.1f} SE"
+                return f"{d['deg']:.2f} deg / {d['mm']:.2f} mm, {d['decision']}, {margin}"
+
+            print(
+                f"{m} step {s}: {fmt_d(dec['free'])} | {fmt_d(dec['tools'])}"
+                + (" | FLIP" if flip else "")
             )
     if a.json:
         a.json.write_text(json.dumps(out, indent=1, default=list) + "\n")

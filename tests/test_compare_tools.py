@@ -127,3 +127,66 @@ def test_a_tools_run_that_shows_less_is_flagged_beside_its_verdict(tmp_path: Pat
     row = json.loads(out_json.read_text())["rows"]["updated"]
     assert row["pass"] and row["more_holes_steps"] == [2]
     assert row["tools_missing"] == [0.014, 0.020]
+
+
+def _hand_eye_report(
+    path: Path, deg: float, mm: float, se_deg: float | None, rejected: str
+) -> None:
+    """An update.json whose step correction F turns ``deg`` about z and shifts ``mm`` along
+    x, with F's standard error ``se_deg`` in rotation (None: the frames agree exactly) and
+    0.25 mm in shift."""
+    a = np.radians(deg)
+    F = np.eye(4)
+    F[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    F[0, 3] = mm
+    hand_eye = {
+        "T_cam_from_corrected_cam": F.tolist(),
+        "z_rotation": None if se_deg is None else deg / se_deg,
+        "z_translation": mm / 0.25,
+    }
+    reg = {"ok": True, "hand_eye": hand_eye, **({"rejected": rejected} if rejected else {})}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(
+        json.dumps({"frames": [], "frames_used": [], "num_frames": 4, "sequence_registration": reg})
+    )
+
+
+def test_hand_eye_decisions_their_distance_from_the_gate_and_flips(tmp_path: Path, capsys) -> None:
+    means = {"no_update": [1.0, 2.0], "updated": [0.5, 1.0]}
+    _run(tmp_path / "free", means, False)
+    _run(tmp_path / "tools", means, True)
+    for run in ("free", "tools"):
+        (tmp_path / run / "update_config.yaml").write_text(
+            "registration:\n  tracking_accuracy_mm: 1.5\n  tracking_accuracy_deg: 1.5\n"
+        )
+    step = "seed_0/base/updated/step_{:02d}/update.json"
+    refused = "hand-eye correction 0.50 mm / 1.80 deg exceeds the tracking accuracy"
+    # Step 1: 1.2 deg +- 0.5 applied (0.3 deg inside the gate: 0.6 SE; the shift, 0.5 mm
+    # +- 0.25, is 4 SE inside), 1.8 deg +- 0.6 refused (0.3 deg beyond: 0.5 SE): a flip.
+    _hand_eye_report(tmp_path / "free" / step.format(1), 1.2, 0.5, 0.5, "")
+    _hand_eye_report(tmp_path / "tools" / step.format(1), 1.8, 0.5, 0.6, refused)
+    # Step 2: both refused, one by each gate: no flip. The frames that agree exactly give
+    # F no error at all, so nothing moves that decision.
+    _hand_eye_report(
+        tmp_path / "free" / step.format(2), 1.0, 0.5, 0.25, "widens the depth residual"
+    )
+    _hand_eye_report(tmp_path / "tools" / step.format(2), 2.0, 0.5, None, refused)
+    out_json = tmp_path / "out.json"
+    rc = load_benchmark("compare_tools").main(
+        ["--free", str(tmp_path / "free"), "--tools", str(tmp_path / "tools"),
+         "--json", str(out_json)]
+    )  # fmt: skip
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert (
+        "updated step 1: 1.20 deg / 0.50 mm, applied, 0.6 SE | "
+        "1.80 deg / 0.50 mm, refused: accuracy, 0.5 SE | FLIP"
+    ) in text
+    assert (
+        "updated step 2: 1.00 deg / 0.50 mm, refused: depth, 2.0 SE | "
+        "2.00 deg / 0.50 mm, refused: accuracy, inf SE\n"
+    ) in text
+    got = json.loads(out_json.read_text())["hand_eye"]
+    assert got["updated/1"]["flip"] and not got["updated/2"]["flip"]
+    assert abs(got["updated/1"]["free"]["margin_se"] - 0.6) < 1e-9
+    assert abs(got["updated/1"]["tools"]["margin_se"] - 0.5) < 1e-9
