@@ -165,9 +165,10 @@ def hand_eye_decision(report: Path, gate_mm: float, gate_deg: float) -> dict | N
     if rejected:
         decision = "refused: accuracy" if "tracking accuracy" in rejected else "refused: depth"
     margin = None
-    if all(e is not None for e in se):
+    known = [e for e in se if e is not None]
+    if len(known) == 2:
         d = [(size - gate) for size, gate in ((mm, gate_mm), (deg, gate_deg))]
-        z = [np.inf if e == 0 else abs(x) / e for x, e in zip(d, se, strict=True)]
+        z = [np.inf if e == 0 else abs(x) / e for x, e in zip(d, known, strict=True)]
         outside = [zi for x, zi in zip(d, z, strict=True) if x > 0]
         margin = float(max(outside) if outside else min(z))
     return {"deg": deg, "mm": mm, "decision": decision, "margin_se": margin}
