@@ -323,6 +323,14 @@ def main(argv: list[str] | None = None) -> int:
                 f"{m} step {s}: {fmt_d(dec['free'])} | {fmt_d(dec['tools'])}"
                 + (" | FLIP" if flip else "")
             )
+    if out["hand_eye"]:
+        decided = [d for v in out["hand_eye"].values() for d in (v["free"], v["tools"])]
+        near = sum(d["margin_se"] is not None and d["margin_se"] < 1.0 for d in decided)
+        flips = sum(v["flip"] for v in out["hand_eye"].values())
+        out["hand_eye_summary"] = {"decisions": len(decided), "within_1_se": near, "flips": flips}
+        print(
+            f"decisions: {len(decided)}, within one standard error of the gate: {near}, flips: {flips}"
+        )
     if a.json:
         a.json.write_text(json.dumps(out, indent=1, default=list) + "\n")
     return 0

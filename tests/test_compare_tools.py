@@ -186,6 +186,8 @@ def test_hand_eye_decisions_their_distance_from_the_gate_and_flips(tmp_path: Pat
         "updated step 2: 1.00 deg / 0.50 mm, refused: depth, 2.0 SE | "
         "2.00 deg / 0.50 mm, refused: accuracy, inf SE\n"
     ) in text
+    # 0.6 and 0.5 SE at step 1; 2.0 and no error at all at step 2.
+    assert "decisions: 4, within one standard error of the gate: 2, flips: 1" in text
     got = json.loads(out_json.read_text())["hand_eye"]
     assert got["updated/1"]["flip"] and not got["updated/2"]["flip"]
     assert abs(got["updated/1"]["free"]["margin_se"] - 0.6) < 1e-9
