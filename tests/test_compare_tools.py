@@ -53,6 +53,15 @@ def _run(
         (seq / "tools.json").write_text(json.dumps({"frames": frames}))
 
 
+def _compare(root: Path, out_json: Path, capsys) -> str:  # noqa: ANN001 - pytest fixture
+    """compare_tools on ``root``/free against ``root``/tools; what it printed."""
+    rc = load_benchmark("compare_tools").main(
+        ["--free", str(root / "free"), "--tools", str(root / "tools"), "--json", str(out_json)]
+    )
+    assert rc == 0
+    return capsys.readouterr().out
+
+
 def test_compare_tools_ratios_verdict_and_tool_statistics(tmp_path: Path, capsys) -> None:
     _run(
         tmp_path / "free",
@@ -116,12 +125,7 @@ def test_a_tools_run_that_shows_less_is_flagged_beside_its_verdict(tmp_path: Pat
     _run(tmp_path / "free", means, False, {"updated": [0.010, 0.010]})
     _run(tmp_path / "tools", means, True, {"updated": [0.014, 0.020]})
     out_json = tmp_path / "out.json"
-    rc = load_benchmark("compare_tools").main(
-        ["--free", str(tmp_path / "free"), "--tools", str(tmp_path / "tools"),
-         "--json", str(out_json)]
-    )  # fmt: skip
-    assert rc == 0
-    text = capsys.readouterr().out
+    text = _compare(tmp_path, out_json, capsys)
     assert "| PASS; more holes at steps [2]" in text
     assert "updated | 0.0100, 0.0140 | 0.0100, 0.0200" in text
     row = json.loads(out_json.read_text())["rows"]["updated"]
@@ -172,12 +176,7 @@ def test_hand_eye_decisions_their_distance_from_the_gate_and_flips(tmp_path: Pat
     )
     _hand_eye_report(tmp_path / "tools" / step.format(2), 2.0, 0.5, None, refused)
     out_json = tmp_path / "out.json"
-    rc = load_benchmark("compare_tools").main(
-        ["--free", str(tmp_path / "free"), "--tools", str(tmp_path / "tools"),
-         "--json", str(out_json)]
-    )  # fmt: skip
-    assert rc == 0
-    text = capsys.readouterr().out
+    text = _compare(tmp_path, out_json, capsys)
     assert (
         "updated step 1: 1.20 deg / 0.50 mm, applied, 0.6 SE | "
         "1.80 deg / 0.50 mm, refused: accuracy, 0.5 SE | FLIP"
