@@ -163,6 +163,7 @@ def hand_eye_decision(report: Path, gate_mm: float, gate_deg: float) -> dict | N
     rejected = str(reg.get("rejected", ""))
     decision = "applied"
     if rejected:
+        # The report's reason is text (chisel.registration.tracking_excess words the first).
         decision = "refused: accuracy" if "tracking accuracy" in rejected else "refused: depth"
     margin = None
     known = [e for e in se if e is not None]
@@ -171,7 +172,9 @@ def hand_eye_decision(report: Path, gate_mm: float, gate_deg: float) -> dict | N
         z = [np.inf if e == 0 else abs(x) / e for x, e in zip(d, known, strict=True)]
         outside = [zi for x, zi in zip(d, z, strict=True) if x > 0]
         margin = float(max(outside) if outside else min(z))
-    return {"deg": deg, "mm": mm, "decision": decision, "margin_se": margin}
+    return {
+        "deg": deg, "mm": mm, "applied": not rejected, "decision": decision, "margin_se": margin
+    }  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -275,6 +278,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "\n# updates: frames used (tools run: of them with a tool), mean changed-pixel fraction tool / tool-free frames"
     )
+    gates = {"free": accuracy_gate(free_dir), "tools": accuracy_gate(tools_dir)}
+    hand_eye_lines = []
     for m in methods:
         if m == "no_update":
             continue
@@ -296,33 +301,25 @@ def main(argv: list[str] | None = None) -> int:
                 f"{fmt(uf['changed_tool'])}/{fmt(ut['changed_tool'])}, other frames "
                 f"{fmt(uf['changed_free'])}/{fmt(ut['changed_free'])}"
             )
-    gates = {"free": accuracy_gate(free_dir), "tools": accuracy_gate(tools_dir)}
-    print(
-        "\n# hand-eye decision per step: F's rotation / shift, the decision, F's distance from "
-        "the accuracy gate in its standard errors; tool-free | tools"
-    )
-    for m in methods:
-        for s in steps:
-            dec = {
-                run: hand_eye_decision(
-                    d / sub / "base" / m / f"step_{s:02d}" / "update.json", *gates[run]
-                )
-                for run, d in (("free", free_dir), ("tools", tools_dir))
-                if (d / sub / "base" / m / f"step_{s:02d}" / "update.json").exists()
-            }
-            if len(dec) < 2 or dec["free"] is None or dec["tools"] is None:
+            df, dt = hand_eye_decision(rf, *gates["free"]), hand_eye_decision(rt, *gates["tools"])
+            if df is None or dt is None:
                 continue
-            flip = dec["free"]["decision"].split(":")[0] != dec["tools"]["decision"].split(":")[0]
-            out["hand_eye"][f"{m}/{s}"] = {**dec, "flip": flip}
+            flip = df["applied"] != dt["applied"]
+            out["hand_eye"][f"{m}/{s}"] = {"free": df, "tools": dt, "flip": flip}
 
             def fmt_d(d: dict) -> str:
                 margin = "-" if d["margin_se"] is None else f"{d['margin_se']:.1f} SE"
                 return f"{d['deg']:.2f} deg / {d['mm']:.2f} mm, {d['decision']}, {margin}"
 
-            print(
-                f"{m} step {s}: {fmt_d(dec['free'])} | {fmt_d(dec['tools'])}"
-                + (" | FLIP" if flip else "")
+            hand_eye_lines.append(
+                f"{m} step {s}: {fmt_d(df)} | {fmt_d(dt)}" + (" | FLIP" if flip else "")
             )
+    print(
+        "\n# hand-eye decision per step: F's rotation / shift, the decision, F's distance from "
+        "the accuracy gate in its standard errors; tool-free | tools"
+    )
+    for line in hand_eye_lines:
+        print(line)
     if out["hand_eye"]:
         decided = [d for v in out["hand_eye"].values() for d in (v["free"], v["tools"])]
         near = sum(d["margin_se"] is not None and d["margin_se"] < 1.0 for d in decided)
