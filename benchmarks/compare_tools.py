@@ -47,6 +47,8 @@ import numpy as np
 from chisel.core.config import load_config_file
 from chisel.core.geometry import rotation_angle_deg
 from chisel.io.images import decode_image
+from chisel.registration import REJECTED_BY_DEPTH_RESIDUAL as DEPTH
+from chisel.registration import REJECTED_BY_TRACKING_ACCURACY as TRACKING
 from chisel.update_config import UpdateConfig
 
 LOW, HIGH = 0.9, 1.1
@@ -163,8 +165,10 @@ def hand_eye_decision(report: Path, gate_mm: float, gate_deg: float) -> dict | N
     rejected = str(reg.get("rejected", ""))
     decision = "applied"
     if rejected:
-        # The report's reason is text (chisel.registration.tracking_excess words the first).
-        decision = "refused: accuracy" if "tracking accuracy" in rejected else "refused: depth"
+        gate = reg.get("rejected_by")
+        if gate is None:  # a report written before `rejected_by`: only the prose says which
+            gate = TRACKING if "tracking accuracy" in rejected else DEPTH
+        decision = "refused: accuracy" if gate == TRACKING else "refused: depth"
     margin = None
     known = [e for e in se if e is not None]
     if len(known) == 2:

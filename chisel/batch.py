@@ -42,6 +42,8 @@ from chisel.icp import icp_similarity
 from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
 from chisel.registration import (
+    REJECTED_BY_DEPTH_RESIDUAL,
+    REJECTED_BY_TRACKING_ACCURACY,
     check_result,
     correction_z,
     register_global,
@@ -174,14 +176,14 @@ def _register_step(
     if solve_for_scale and cfg.relative_hand_eye == "frame":
         reason = "relative depth: every frame registered on its own (relative_hand_eye)"
         return scales, None, {**seq_reg, "not_applied": reason}, cfg
-    reason = ""
+    reason, gate = "", ""
     excess = None if F is None else tracking_excess(F, cfg.registration)
     if excess:
         # A monocular estimate whose shape differs from the model's pulls ICP to a
         # "correction" the tracker cannot need (6-12 deg on the default experiment's
         # network depth, true hand-eye error 0.5 deg); placed that way, the estimate
         # carves unchanged tissue. Trust the tracker for this step instead.
-        reason = f"hand-eye {excess}"
+        reason, gate = f"hand-eye {excess}", REJECTED_BY_TRACKING_ACCURACY
     elif F is not None and solve_for_scale:
         tracked_mm, corrected_mm = _residual_spread(camera, estimates, renders, scales, F)
         seq_reg = {
@@ -203,10 +205,12 @@ def _register_step(
                 f"hand-eye correction widens the depth residual ({tracked_mm:.2f} -> "
                 f"{corrected_mm:.2f} mm)"
             )
+            gate = REJECTED_BY_DEPTH_RESIDUAL
     if reason:
         reason += ": the step is placed with the tracked poses, scale only"
         log.warning("%s", reason)
-        return scales, None, {**seq_reg, "rejected": reason}, replace(cfg, register=False)
+        refused = {**seq_reg, "rejected": reason, "rejected_by": gate}
+        return scales, None, refused, replace(cfg, register=False)
     return scales, F, seq_reg, cfg
 
 

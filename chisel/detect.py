@@ -33,6 +33,7 @@ from chisel.depth_source import is_metric
 from chisel.icp import icp_similarity
 from chisel.io.sequence import Frame, check_depth_mm
 from chisel.registration import (
+    REJECTED_BY_TRACKING_ACCURACY,
     RegistrationResult,
     check_result,
     register_global,
@@ -354,6 +355,7 @@ def register_frame(
         # As for a whole step (chisel.batch): a correction the tracker cannot need is
         # the estimate's shape error; the frame keeps its tracked pose, scale only.
         res.extra["rejected"] = f"{excess}: tracked pose, scale only"
+        res.extra["rejected_by"] = REJECTED_BY_TRACKING_ACCURACY
         return (s0 * E).astype(np.float32), s0, res
     return warp_depth(s * E, camera, T_tracked_from_registered), s, res
 

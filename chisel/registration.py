@@ -339,6 +339,11 @@ def correction_z(F: np.ndarray, transforms: list[np.ndarray]) -> tuple[float, fl
     return z(angle_rad, rot_dev), z(float(np.linalg.norm(F[:3, 3])), shift_dev)
 
 
+# Which gate refused a correction: a report's `rejected_by` (its `rejected` is prose).
+REJECTED_BY_TRACKING_ACCURACY = "tracking_accuracy"
+REJECTED_BY_DEPTH_RESIDUAL = "depth_residual"
+
+
 def tracking_excess(F: np.ndarray, cfg: RegistrationConfig) -> str:
     """Why the camera-side correction F is one the tracker cannot need ("" if it can)."""
     shift_mm, angle_deg = float(np.linalg.norm(F[:3, 3])), rotation_angle_deg(F[:3, :3])

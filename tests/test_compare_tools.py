@@ -134,11 +134,17 @@ def test_a_tools_run_that_shows_less_is_flagged_beside_its_verdict(tmp_path: Pat
 
 
 def _hand_eye_report(
-    path: Path, deg: float, mm: float, se_deg: float | None, rejected: str
+    path: Path,
+    deg: float,
+    mm: float,
+    se_deg: float | None,
+    rejected: str,
+    rejected_by: str | None = None,
 ) -> None:
     """An update.json whose step correction F turns ``deg`` about z and shifts ``mm`` along
     x, with F's standard error ``se_deg`` in rotation (None: the frames agree exactly) and
-    0.25 mm in shift."""
+    0.25 mm in shift; refused (``rejected``, prose) by ``rejected_by`` (None: a report
+    written before that field)."""
     a = np.radians(deg)
     F = np.eye(4)
     F[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
@@ -148,7 +154,11 @@ def _hand_eye_report(
         "z_rotation": None if se_deg is None else deg / se_deg,
         "z_translation": mm / 0.25,
     }
-    reg = {"ok": True, "hand_eye": hand_eye, **({"rejected": rejected} if rejected else {})}
+    reg: dict = {"ok": True, "hand_eye": hand_eye}
+    if rejected:
+        reg["rejected"] = rejected
+    if rejected_by is not None:
+        reg["rejected_by"] = rejected_by
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(
         json.dumps({"frames": [], "frames_used": [], "num_frames": 4, "sequence_registration": reg})
@@ -167,13 +177,15 @@ def test_hand_eye_decisions_their_distance_from_the_gate_and_flips(tmp_path: Pat
     refused = "hand-eye correction 0.50 mm / 1.80 deg exceeds the tracking accuracy"
     # Step 1: 1.2 deg +- 0.5 applied (0.3 deg inside the gate: 0.6 SE; the shift, 0.5 mm
     # +- 0.25, is 4 SE inside), 1.8 deg +- 0.6 refused (0.3 deg beyond: 0.5 SE): a flip.
+    # Which gate refused is read from `rejected_by`, not from the prose.
     _hand_eye_report(tmp_path / "free" / step.format(1), 1.2, 0.5, 0.5, "")
-    _hand_eye_report(tmp_path / "tools" / step.format(1), 1.8, 0.5, 0.6, refused)
-    # Step 2: both refused, one by each gate: no flip. The frames that agree exactly give
-    # F no error at all, so nothing moves that decision.
     _hand_eye_report(
-        tmp_path / "free" / step.format(2), 1.0, 0.5, 0.25, "widens the depth residual"
+        tmp_path / "tools" / step.format(1), 1.8, 0.5, 0.6, "refused", "tracking_accuracy"
     )
+    # Step 2: both refused, one by each gate: no flip. The frames that agree exactly give
+    # F no error at all, so nothing moves that decision. The tools run's report predates
+    # `rejected_by`: its prose names the gate.
+    _hand_eye_report(tmp_path / "free" / step.format(2), 1.0, 0.5, 0.25, "widens", "depth_residual")
     _hand_eye_report(tmp_path / "tools" / step.format(2), 2.0, 0.5, None, refused)
     out_json = tmp_path / "out.json"
     text = _compare(tmp_path, out_json, capsys)

@@ -169,6 +169,7 @@ def test_correction_beyond_tracking_accuracy_is_not_applied(scene: dict) -> None
     cam, model, fr, src, strict = _two_degree_error(scene, 8)
     _, report = update_step(model, cam, fr, src, strict)
     assert "exceeds the tracking accuracy" in report.sequence_registration["rejected"]
+    assert report.sequence_registration["rejected_by"] == "tracking_accuracy"
     assert report.frames_used == list(range(8))
     assert all(f.registration is None and f.scale is not None for f in report.frames)
     _, report = update_step(model, cam, fr, src)  # 3 mm / 3 deg: registered
@@ -193,6 +194,7 @@ def test_correction_that_widens_the_depth_residual_is_not_applied(scene: dict, m
     _, report = update_step(model, cam, frames(scene["bitten"], cam, P), src)
     seq = report.sequence_registration
     assert "widens the depth residual" in seq["rejected"]
+    assert seq["rejected_by"] == "depth_residual"
     assert seq["residual_sigma_corrected_mm"] > seq["residual_sigma_tracked_mm"]
     assert all(f.registration is None for f in report.frames)
 
@@ -214,6 +216,7 @@ def test_streaming_frames_beyond_tracking_accuracy_keep_the_tracked_pose(scene: 
     upd.begin_step()
     reps = [upd.process(f) for f in fr]
     assert all(r.used and "tracking accuracy" in r.registration["rejected"] for r in reps)
+    assert all(r.registration["rejected_by"] == "tracking_accuracy" for r in reps)
     np.testing.assert_array_equal(upd.hand_eye, np.eye(4))  # nothing learnt from them
     # 3 mm / 3 deg: the corrections of the 2 mm / 2 deg error are applied. (The first
     # frame, registered from the tracker without a prior, may land far off and is then
