@@ -47,6 +47,9 @@ MODEL_VERSION = 1
 
 MAX_TRUNC_MM = 1e4
 """Largest truncation distance, mm."""
+MAX_STEP = 2**62
+"""Steps recorded in a model are below this: ``step`` is saved as int64 and each update
+adds one (a uint64 2**64 - 1 read from a file would overflow the next save)."""
 BUILDS: tuple[str, ...] = ("ct", "sweep")
 """The preoperative builds a model file can record (field ``build``)."""
 
@@ -83,7 +86,14 @@ class TsdfModel:
     def __post_init__(self) -> None:
         tsdf = np.asarray(self.tsdf)
         weight = np.asarray(self.weight)
-        T = np.asarray(self.T_world_from_voxel, dtype=np.float64)
+        T = np.asarray(self.T_world_from_voxel)
+        # Before the cast: strings would raise numpy's ValueError, complex numbers would
+        # lose their imaginary part with only a warning.
+        if T.dtype.kind not in "iuf":
+            raise InvalidInputError(
+                "T_world_from_voxel", f"expected real numbers, got dtype {T.dtype} {T.shape}"
+            )
+        T = T.astype(np.float64)
         if tsdf.ndim != 3 or tsdf.dtype != np.float32:
             raise InvalidInputError(
                 "tsdf", f"expected (X, Y, Z) float32, got {tsdf.shape} {tsdf.dtype}"
@@ -133,7 +143,10 @@ class TsdfModel:
                 raise InvalidInputError(
                     "color", f"expected {(*tsdf.shape, 3)} uint8, got {c.shape} {c.dtype}"
                 )
-        object.__setattr__(self, "step", int(self.step))
+        step = int(self.step)
+        if not 0 <= step < MAX_STEP:
+            raise InvalidInputError("step", f"must be an integer >= 0 and < 2**62, got {step}")
+        object.__setattr__(self, "step", step)
         if self.build not in BUILDS:
             raise InvalidInputError("build", f"expected one of {BUILDS}, got {self.build!r}")
 
@@ -287,8 +300,10 @@ class TsdfModel:
         ):
             raise InvalidInputError(path, "weight must be finite and >= 0")
         step = data.get("step", np.int64(0))
-        if step.dtype.kind not in "iu" or int(step) < 0:
-            raise InvalidInputError(path, f"step must be an integer >= 0, got {step}")
+        if step.dtype.kind not in "iu" or not 0 <= int(step) < MAX_STEP:
+            raise InvalidInputError(
+                path, f"step must be an integer >= 0 and < 2**62, got {step} ({step.dtype})"
+            )
         text = {}
         for key, default in (("build", "sweep"), ("ct_sha256", "")):
             if key in data and (data[key].shape != () or data[key].dtype.kind != "U"):

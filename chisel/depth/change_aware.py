@@ -44,6 +44,7 @@ from chisel.depth.checkpoint import (
     CHECKPOINT_VERSION,
     KIND_CHANGE_AWARE,
     CheckpointError,
+    checkpoint_info,
     fill_weights,
     nonfinite_tensors,
     read_checkpoint,
@@ -311,4 +312,4 @@ def load_change_checkpoint(path: str | Path) -> tuple[ChangeNet, dict[str, Any]]
     config = ChangeNetConfig.from_dict(payload.get("config", {}), f"{path} config")
     net = ChangeNet(config)
     fill_weights(path, net, payload, config.to_dict())
-    return net, dict(payload.get("info", {}))
+    return net, checkpoint_info(path, payload)

@@ -164,6 +164,15 @@ def fill_weights(
     state = payload.get("state_dict")
     if not isinstance(state, dict):
         raise CheckpointError(path, "no state_dict in checkpoint")
+    for key, value in state.items():
+        if not isinstance(key, str):
+            raise CheckpointError(
+                path, f"state_dict key {key!r} is {type(key).__name__}, expected a tensor name"
+            )
+        if not torch.is_tensor(value):
+            raise CheckpointError(
+                path, f"state_dict[{key!r}] is {type(value).__name__}, expected a tensor"
+            )
     problems = _describe_mismatch(net.state_dict(), state)
     if problems:
         raise CheckpointError(
@@ -182,6 +191,17 @@ def fill_weights(
     net.eval()
 
 
+def checkpoint_info(path: str | Path, payload: dict[str, Any]) -> dict[str, Any]:
+    """The payload's ``info``: a JSON-able dict (``{}`` in a file without one). Shared by
+    both networks' loaders."""
+    info = payload.get("info", {})
+    if not isinstance(info, dict):
+        raise CheckpointError(
+            path, f"info must be a dict (JSON object), got {type(info).__name__}: {info!r:.60}"
+        )
+    return _json_able(info, str(path))
+
+
 def load_checkpoint(
     path: str | Path, config: DepthNetConfig | None = None
 ) -> tuple[DepthNet, dict[str, Any]]:
@@ -195,4 +215,4 @@ def load_checkpoint(
     stored = DepthNetConfig.from_dict(payload.get("config", {}), f"{path} config")
     net = DepthNet(config or stored)
     fill_weights(path, net, payload, (config or stored).to_dict())
-    return net, dict(payload.get("info", {}))
+    return net, checkpoint_info(path, payload)

@@ -25,8 +25,9 @@ import cv2
 import numpy as np
 
 from chisel.core.config import read_yaml_mapping
-from chisel.core.errors import CameraError
+from chisel.core.errors import CameraError, ResourceLimitError
 from chisel.core.geometry import Camera
+from chisel.io.limits import MAX_IMAGE_SIDE_PX
 from chisel.io.manifest import read_json_manifest
 
 _K_KEYS = ("camera_matrix", "K", "cameraMatrix", "intrinsic_matrix")
@@ -100,6 +101,39 @@ def _numbers(values: object, what: str, source: str) -> np.ndarray:
         raise CameraError(source, f"{what} must be numbers: {exc}") from None
 
 
+def _number(value: object, key: str, source: str, positive: bool = False) -> float:
+    """One finite number (``fx``, ``cy``, ...); ``positive``: also > 0."""
+    if isinstance(value, bool):  # np.asarray(True) is 1.0: not a focal length
+        raise CameraError(source, f"{key} must be a number, got {value!r}")
+    x = _numbers(value, key, source)
+    if x.shape != ():
+        raise CameraError(source, f"{key} must be a single number, got {value!r}")
+    if not np.isfinite(x) or (positive and not x > 0):
+        kind = "a positive finite number" if positive else "a finite number"
+        raise CameraError(source, f"{key} must be {kind}, got {float(x)}")
+    return float(x)
+
+
+def _pixels(value: object, key: str, source: str) -> int:
+    """An image width or height: a positive whole number of pixels (``64.0`` and ``"64"``
+    as read before; ``64.5``, ``true``, NaN, inf or a list are refused)."""
+    n: int | None = None
+    if isinstance(value, str):
+        try:
+            n = int(value.strip())
+        except ValueError:
+            n = None
+    elif isinstance(value, int) and not isinstance(value, bool):
+        n = value
+    elif isinstance(value, float) and np.isfinite(value) and value.is_integer():
+        n = int(value)
+    if n is None or n <= 0:
+        raise CameraError(source, f"{key} must be a positive whole number of pixels, got {value!r}")
+    if n > MAX_IMAGE_SIDE_PX:
+        raise ResourceLimitError(source, f"{key} is {n} px, over the limit of {MAX_IMAGE_SIDE_PX}")
+    return n
+
+
 def _dist5(values: object, source: str) -> np.ndarray:
     d = _numbers(values, "distortion coefficients", source).ravel()
     if d.size == 4:
@@ -125,6 +159,8 @@ def _matrix3(values: object, source: str) -> np.ndarray:
     K = _numbers(values, "camera matrix", source)
     if K.size != 9:
         raise CameraError(source, f"camera matrix must have 9 entries, got shape {K.shape}")
+    if not np.all(np.isfinite(K)):
+        raise CameraError(source, f"camera matrix entries must be finite, got {K.ravel().tolist()}")
     return K.reshape(3, 3)
 
 
@@ -138,18 +174,20 @@ def _from_mapping(d: dict, source: str) -> Calibration:
     if k_key is not None:
         K = _matrix3(unwrap(d[k_key]), source)
     elif all(k in d for k in ("fx", "fy", "cx", "cy")):
-        K = np.array(
-            [[d["fx"], 0.0, d["cx"]], [0.0, d["fy"], d["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64
-        )
+        fx, fy = (_number(d[k], k, source, positive=True) for k in ("fx", "fy"))
+        cx, cy = (_number(d[k], k, source) for k in ("cx", "cy"))
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
     else:
         raise CameraError(
             source, f"no camera matrix: expected one of {list(_K_KEYS)} or fx, fy, cx, cy"
         )
     d_key = next((k for k in _DIST_KEYS if k in d), None)
     dist = _dist5(unwrap(d[d_key]), source) if d_key is not None else np.zeros(5)
-    w = d.get("width", d.get("image_width"))
-    h = d.get("height", d.get("image_height"))
-    size = (int(w), int(h)) if w is not None and h is not None else None
+    w_key = "width" if "width" in d else "image_width"
+    h_key = "height" if "height" in d else "image_height"
+    w = None if d.get(w_key) is None else _pixels(d[w_key], w_key, source)
+    h = None if d.get(h_key) is None else _pixels(d[h_key], h_key, source)
+    size = (w, h) if w is not None and h is not None else None
     return Calibration(K, dist, size, source)
 
 
@@ -178,13 +216,28 @@ def _read_filestorage(path: Path) -> Calibration | None:
         K = _matrix3(K_mat, source)
         d_mat = mat(_DIST_KEYS)
         dist = np.zeros(5) if d_mat is None else _dist5(d_mat, source)
-        wn, hn = fs.getNode("image_width"), fs.getNode("image_height")
-        size = None if wn.empty() or hn.empty() else (int(wn.real()), int(hn.real()))
+        w, h = (_fs_pixels(fs.getNode(k), k, source) for k in ("image_width", "image_height"))
+        size = (w, h) if w is not None and h is not None else None
         return Calibration(K, dist, size, source)
     except cv2.error:
         return None
     finally:
         fs.release()
+
+
+def _fs_pixels(node: cv2.FileNode, key: str, source: str) -> int | None:
+    """:func:`_pixels` of a FileStorage node, None if absent (``real()`` of a string or a
+    sequence is DBL_MAX: the node's type is looked at first)."""
+    if node.empty() or node.isNone():
+        return None
+    if node.isInt() or node.isReal():
+        value: object = int(node.real()) if node.isInt() else node.real()
+    elif node.isString():
+        value = node.string()
+    else:
+        kind = "a sequence" if node.isSeq() else "a mapping"
+        raise CameraError(source, f"{key} must be a positive whole number of pixels, got {kind}")
+    return _pixels(value, key, source)
 
 
 def read_calibration(path: str | Path) -> Calibration:

@@ -25,6 +25,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from chisel.core.errors import InvalidInputError, PoseError
 from chisel.core.geometry import check_rigid
 from chisel.io.import_common import load_npy
+from chisel.io.limits import read_text_limited
 from chisel.io.sequence import check_pose_units
 
 QUATERNION_NORM_TOL = 1e-2
@@ -88,16 +89,26 @@ class PoseConfig:
                 object.__setattr__(self, name, check_rigid(T, name).copy())
 
 
+def _load_numbers_npy(path: Path, what: str) -> np.ndarray:
+    """A ``.npy`` of real numbers as float64 (strings or complex numbers are refused:
+    ``astype`` would raise, or drop the imaginary part)."""
+    arr = load_npy(path)
+    if arr.dtype.kind not in "fiu":
+        raise PoseError(path, f"{what} must be real numbers, got dtype {arr.dtype}")
+    return arr.astype(np.float64)
+
+
 def read_transform(path: str | Path, source: str) -> np.ndarray:
     """A single (4, 4) transform from a ``.npy`` or a text file of 16 numbers."""
     path = Path(path)
     if path.suffix.lower() == ".npy":
-        arr = load_npy(path).astype(np.float64)
+        arr = _load_numbers_npy(path, source)
     else:
         if not path.is_file():
             raise InvalidInputError(path, f"{source} file not found")
+        text = read_text_limited(path, f"{source} file", PoseError).strip()
         try:
-            arr = np.array(re.split(r"[,\s]+", path.read_text().strip()), dtype=np.float64)
+            arr = np.array(re.split(r"[,\s]+", text), dtype=np.float64)
         except ValueError as exc:
             raise PoseError(path, f"cannot parse {source}: {exc}") from None
     if arr.size != 16:
@@ -122,11 +133,15 @@ class PoseTrack:
         return np.isfinite(self.poses.reshape(len(self.poses), -1)).all(axis=1)
 
 
-def _read_numeric_rows(path: Path) -> tuple[np.ndarray, list[int]]:
-    """Rows of numbers (comma or space separated, '#' comments, one header line allowed)."""
+def _read_numeric_rows(
+    path: Path, what: str, error: type[InvalidInputError]
+) -> tuple[np.ndarray, list[int]]:
+    """Rows of numbers (comma or space separated, '#' comments, one header line allowed)
+    from the text file ``path`` (UTF-8, size-limited: ``what`` and ``error`` name it)."""
     rows: list[list[float]] = []
     linenos: list[int] = []
-    for lineno, raw in enumerate(path.read_text().splitlines(), 1):
+    text = read_text_limited(path, what, error)
+    for lineno, raw in enumerate(text.splitlines(), 1):
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
@@ -177,13 +192,13 @@ def read_pose_file(path: str | Path, fmt: Literal["auto", "matrix", "tum"] = "au
     if not path.is_file():
         raise PoseError(path, "pose file not found")
     if path.suffix.lower() == ".npy":
-        arr = load_npy(path).astype(np.float64)
+        arr = _load_numbers_npy(path, "poses")
         if arr.ndim == 2 and arr.shape[1] == 16:
             arr = arr.reshape(-1, 4, 4)
         if arr.ndim != 3 or arr.shape[1:] != (4, 4) or len(arr) == 0:
             raise PoseError(path, f"expected (N, 4, 4) or (N, 16) poses, got shape {arr.shape}")
         return PoseTrack(arr, None, str(path))
-    rows, linenos = _read_numeric_rows(path)
+    rows, linenos = _read_numeric_rows(path, "pose file", PoseError)
     ncol = rows.shape[1]
     kind = fmt
     if fmt == "auto":
@@ -297,7 +312,7 @@ def read_frame_times(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "frame-time file not found")
-    rows, _ = _read_numeric_rows(path)
+    rows, _ = _read_numeric_rows(path, "frame-time file", InvalidInputError)
     times = rows[:, -1].copy()
     if not np.all(np.isfinite(times)):
         raise InvalidInputError(path, "frame times contain NaN/inf")
