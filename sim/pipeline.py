@@ -34,7 +34,9 @@ import trimesh
 from tqdm import tqdm
 
 from chisel.core.atomic import atomic_dir, check_output_outside
+from chisel.core.errors import InvalidInputError, ResourceLimitError, out_of_memory_names
 from chisel.core.mitsuba_variant import choose_variant
+from chisel.io.limits import check_npy_header
 from chisel.io.manifest import named_path, read_json_manifest
 from chisel.io.sequence import Frame, SequenceWriter, depth_to_disk, imwrite
 from sim.appearance import TextureVolume, cut_texture_volume, randomize, texture_volume
@@ -273,11 +275,16 @@ def _texture_box(mesh: trimesh.Trimesh) -> np.ndarray:
     return np.stack([b[0] - 1.0, b[1] + 1.0])
 
 
-def load_cut_faces(phantom: Phantom, step: int, n_faces: int) -> np.ndarray | None:
+def load_cut_faces(
+    phantom: Phantom, step: int, n_faces: int, allow_outside: bool = False
+) -> np.ndarray | None:
     """(F,) bool cut-face labels of a step's mesh, from ``phantom.json``'s optional
     ``steps[k].cut_faces`` (a uint8 ``.npy`` per face; ``docs/phantoms.md``), or None
-    when the phantom has none. A file that does not match the mesh raises
-    :class:`~sim.errors.PhantomError` naming it."""
+    when the phantom has none. A file that does not match the mesh, is not a ``.npy``
+    (an ``.npz`` archive, a corrupt file, Python objects) or lies outside the phantom's
+    folder (unless ``allow_outside``, as for its meshes) raises
+    :class:`~sim.errors.PhantomError` (or :class:`OutsideManifestError`) naming it and
+    the key."""
     manifest = phantom.path / "phantom.json"
     data = read_json_manifest(manifest, PhantomError)
     steps = data.get("steps")
@@ -286,19 +293,35 @@ def load_cut_faces(phantom: Phantom, step: int, n_faces: int) -> np.ndarray | No
     rel = steps[step].get("cut_faces")
     if rel is None:
         return None
-    path = named_path(manifest, rel, f"steps[{step}].cut_faces", kind="file")
-    try:
-        labels = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise PhantomError(path, f"steps[{step}].cut_faces: not a .npy array: {exc}") from None
+    key = f"steps[{step}].cut_faces"
+    path = named_path(
+        manifest,
+        rel,
+        key,
+        allow_outside=allow_outside,
+        kind="file",
+        option="--allow-outside-phantom",
+    )
+    # Read as the sequence reader reads depth: the .npy header first (declared size,
+    # object dtype), then without pickle; an .npz archive has no .npy header.
+    with out_of_memory_names(path, "reading these cut-face labels"):
+        try:
+            with open(path, "rb") as fh:
+                check_npy_header(fh, path, path.stat().st_size)
+            labels = np.load(path, allow_pickle=False)
+        except InvalidInputError as exc:  # names the file; add the key
+            kind = ResourceLimitError if isinstance(exc, ResourceLimitError) else PhantomError
+            raise kind(path, f"{key}: {exc.problem}") from None
+        except (OSError, ValueError, EOFError) as exc:
+            raise PhantomError(path, f"{key}: not a .npy array: {exc}") from None
     if labels.ndim != 1 or len(labels) != n_faces or labels.dtype.kind not in "biu":
         raise PhantomError(
             path,
-            f"steps[{step}].cut_faces: expected ({n_faces},) integer labels (one per face of "
+            f"{key}: expected ({n_faces},) integer labels (one per face of "
             f"{phantom.steps[step].mesh_path.name}), got {labels.shape} {labels.dtype}",
         )
     if np.any((labels != 0) & (labels != 1)):
-        raise PhantomError(path, f"steps[{step}].cut_faces: labels must be 0 or 1")
+        raise PhantomError(path, f"{key}: labels must be 0 or 1")
     return labels.astype(bool)
 
 
@@ -359,11 +382,16 @@ class PhantomScene:
         cfg: SimConfig,
         include_eval: bool = True,
         texture: TextureVolume | None = None,
+        allow_outside: bool = False,
     ) -> PhantomScene:
         """Meshes, labels, textures and planned paths of ``phantom`` under the drawn
-        ``cfg``; raises before anything is rendered if a path cannot be built."""
+        ``cfg``; raises before anything is rendered if a path or a label file cannot be
+        used (``allow_outside``: files outside the phantom's folder, as for its meshes)."""
         meshes = [load_mesh(s.mesh_path) for s in phantom.steps]
-        labels = [load_cut_faces(phantom, k, len(m.faces)) for k, m in enumerate(meshes)]
+        labels = [
+            load_cut_faces(phantom, k, len(m.faces), allow_outside=allow_outside)
+            for k, m in enumerate(meshes)
+        ]
         films = blood_films(cfg, meshes, labels)
         cuts: list[np.ndarray | None] = (
             labels if cfg.cut.enabled and not cfg.depth_only else [None] * len(meshes)
@@ -420,7 +448,13 @@ def render_phantom(
     cfg = drawn_config(cfg)
     phantom = load_phantom(phantom_dir, allow_outside=allow_outside_phantom)
     check_output_outside(out_dir, phantom.path, *{Path(s.mesh_path).parent for s in phantom.steps})
-    scene = PhantomScene.build(phantom, cfg, include_eval=include_eval, texture=texture)
+    scene = PhantomScene.build(
+        phantom,
+        cfg,
+        include_eval=include_eval,
+        texture=texture,
+        allow_outside=allow_outside_phantom,
+    )
     planned, meshes = scene.planned, scene.meshes
     variant = choose_variant(cfg.variant)
     sequences: dict[str, Any] = {"preop": "preop", "steps": {}, "eval": {}}

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import html
 import json
+import zipfile
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,10 +39,12 @@ import numpy as np
 from scipy import ndimage
 
 from chisel.core.atomic import atomic_savez
-from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.core.errors import FormatVersionError, InvalidInputError, out_of_memory_names
 from chisel.eval.metrics import RoiBox
 from chisel.eval.panels import png_data_uri
 from chisel.io.ct import DEFAULT_HU_ISO, CtVolume
+from chisel.io.limits import check_npz_members
+from chisel.io.manifest import MAX_MANIFEST_BYTES, json_type, parse_json_text
 
 CT_SLICES_FORMAT = "endoscopic-chisel/ct-slices"
 CT_SLICES_VERSION = 1
@@ -380,46 +384,72 @@ def write_ct_slices(path: str | Path, slices: Sequence[CtSlice]) -> Path:
     return atomic_savez(path, arrays)
 
 
+def _read_meta(path: Path, raw: np.ndarray) -> dict:
+    """The ``meta`` member: one JSON object, read with the limits a manifest is read with
+    (:func:`chisel.io.manifest.read_json_manifest`: size, nesting depth, an object)."""
+    if raw.dtype.kind != "U" or raw.ndim != 0:
+        raise InvalidInputError(path, f"meta must be one JSON string, got {raw.dtype} {raw.shape}")
+    text = str(raw)
+    if len(text) > MAX_MANIFEST_BYTES:
+        raise InvalidInputError(
+            path, f"meta is {len(text)} characters; at most {MAX_MANIFEST_BYTES} are read"
+        )
+    meta = parse_json_text(path, text, what="meta")
+    if not isinstance(meta, dict):
+        raise InvalidInputError(path, f"meta: expected a JSON object, got {json_type(meta)}")
+    return meta
+
+
 def read_ct_slices(path: str | Path) -> list[CtSlice]:
-    """Read a slices file written by :func:`write_ct_slices`."""
+    """Read a slices file written by :func:`write_ct_slices`.
+
+    Read as a model file is (:meth:`chisel.model.TsdfModel.load`): declared sizes and
+    object arrays refused from the headers, no pickle; every problem is one error naming
+    the file."""
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "CT slices file is missing")
+    check_npz_members(path)  # object arrays and declared sizes, naming file and member
+    with out_of_memory_names(path, "reading this CT slices file"):
+        try:
+            loaded = np.load(path, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):
+                raise InvalidInputError(path, "expected an .npz archive")
+            with loaded as z:
+                data = {k: np.asarray(z[k]) for k in z.files}
+        except InvalidInputError:  # a ValueError, but it names the file already
+            raise
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InvalidInputError(
+                path, f"cannot read CT slices (npz, no pickle): {exc}"
+            ) from None
+    meta = _read_meta(path, data["meta"]) if "meta" in data else {}
+    if meta.get("format") != CT_SLICES_FORMAT:
+        raise FormatVersionError(path, f"not a CT slices file (format {CT_SLICES_FORMAT!r})")
+    if meta.get("version") != CT_SLICES_VERSION:
+        raise FormatVersionError(
+            path,
+            f"CT slices version {meta.get('version')!r}; this reader reads {CT_SLICES_VERSION}"[
+                :300
+            ],
+        )
+    out = []
     try:
-        z = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise InvalidInputError(path, f"cannot read CT slices (npz, no pickle): {exc}") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise InvalidInputError(path, "expected an .npz archive")
-    with z:
-        try:
-            meta = json.loads(str(z["meta"])) if "meta" in z.files else {}
-        except ValueError:
-            meta = {}
-        if meta.get("format") != CT_SLICES_FORMAT:
-            raise FormatVersionError(path, f"not a CT slices file (format {CT_SLICES_FORMAT!r})")
-        if meta.get("version") != CT_SLICES_VERSION:
-            raise FormatVersionError(
-                path,
-                f"CT slices version {meta.get('version')}; this reader reads {CT_SLICES_VERSION}",
-            )
-        out = []
-        try:
-            for i, e in enumerate(meta["slices"]):
-                names = e["names"]
-                images = {n: z[f"s{i}_hu_{k}"] for k, n in enumerate(names)}
-                removed = {n: z[f"s{i}_removed_{names.index(n)}"] for n in e["removed"]}
-                out.append(
-                    CtSlice(
-                        int(e["step"]),
-                        e["plane"],
-                        float(e["position_mm"]),
-                        np.asarray(e["T_world_from_pixel"], float),
-                        images,
-                        removed,
-                        {k: float(v) for k, v in e["dice"].items()},
-                    )
+        for i, e in enumerate(meta["slices"]):
+            names = e["names"]
+            images = {n: data[f"s{i}_hu_{k}"] for k, n in enumerate(names)}
+            removed = {n: data[f"s{i}_removed_{names.index(n)}"] for n in e["removed"]}
+            out.append(
+                CtSlice(
+                    int(e["step"]),
+                    e["plane"],
+                    float(e["position_mm"]),
+                    np.asarray(e["T_world_from_pixel"], float),
+                    images,
+                    removed,
+                    {k: float(v) for k, v in e["dice"].items()},
                 )
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InvalidInputError(path, f"malformed CT slices file: {exc!r}") from None
+            )
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise InvalidInputError(path, f"malformed CT slices file: {exc!r}"[:300]) from None
     return out

@@ -6,6 +6,8 @@ Split out of :mod:`chisel.eval.report` (which re-exports these names).
 from __future__ import annotations
 
 import base64
+import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,9 +17,10 @@ import numpy as np
 import trimesh
 
 from chisel.core.atomic import atomic_savez
-from chisel.core.errors import FormatVersionError, InvalidInputError
+from chisel.core.errors import FormatVersionError, InvalidInputError, out_of_memory_names
 from chisel.core.geometry import Camera
 from chisel.core.raycast import MeshRaycaster
+from chisel.io.limits import check_npz_members
 from chisel.io.sequence import Frame as SeqFrame
 from chisel.io.sequence import depth_from_disk, depth_to_disk
 
@@ -150,37 +153,70 @@ def write_panels(path: str | Path, panels: Sequence[StepPanel]) -> Path:
 
 
 def read_panels(path: str | Path) -> list[StepPanel]:
-    """Read a panels file written by :func:`write_panels`."""
+    """Read a panels file written by :func:`write_panels`.
+
+    Read as a model file is (:meth:`chisel.model.TsdfModel.load`): declared sizes and
+    object arrays refused from the headers, no pickle; every problem (not an archive, no or
+    another ``version``, missing or ill-typed arrays) is one error naming the file."""
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "panels file is missing")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise InvalidInputError(path, f"cannot read panels (npz without pickle): {exc}") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise InvalidInputError(path, "expected an .npz archive")
-    with z:
-        if "format" not in z.files or str(z["format"]) != PANELS_FORMAT:
-            raise FormatVersionError(path, f"not a panels file (format must be {PANELS_FORMAT!r})")
-        if int(z["version"]) != PANELS_VERSION:
-            raise FormatVersionError(
-                path, f"panels version {int(z['version'])}; this reader reads {PANELS_VERSION}"
+    check_npz_members(path)  # object arrays and declared sizes, naming file and member
+    with out_of_memory_names(path, "reading this panels file"):
+        try:
+            loaded = np.load(path, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):
+                raise InvalidInputError(path, "expected an .npz archive")
+            with loaded as z:
+                data = {k: np.asarray(z[k]) for k in z.files}
+        except InvalidInputError:  # a ValueError, but it names the file already
+            raise
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InvalidInputError(
+                path, f"cannot read panels (npz without pickle): {exc}"
+            ) from None
+    if "format" not in data or data["format"].tolist() != PANELS_FORMAT:
+        raise FormatVersionError(path, f"not a panels file (format must be {PANELS_FORMAT!r})")
+    if "version" not in data:
+        raise FormatVersionError(
+            path, f"panels file has no 'version'; this reader reads version {PANELS_VERSION}"
+        )
+    # tolist(): a 0-d integer array gives an int; "1", [1], 1.0 or True stay refused.
+    version = data["version"].tolist()
+    if type(version) is not int or version != PANELS_VERSION:
+        raise FormatVersionError(
+            path, f"panels version {version!r}; this reader reads {PANELS_VERSION}"[:300]
+        )
+    for key in ("step", "frame_index"):
+        if key not in data:
+            raise InvalidInputError(path, f"panels file lacks the {key!r} array")
+        if data[key].dtype.kind not in "iu" or data[key].ndim != 1:
+            raise InvalidInputError(
+                path,
+                f"{key} must be a 1-D integer array, got {data[key].dtype} {data[key].shape}",
             )
-        steps = z["step"]
-        frames = z["frame_index"]
-        n = len(steps)
-        data = {}
-        for key in PANEL_IMAGE_KEYS:
-            if key in z.files:
-                arr = z[key]
-                if len(arr) != n:
-                    raise InvalidInputError(path, f"{key!r} holds {len(arr)} images for {n} panels")
-                data[key] = depth_from_disk(arr) if key in PANEL_DEPTH_KEYS else arr
-    return [
-        StepPanel(int(steps[i]), int(frames[i]), **{k: v[i] for k, v in data.items()})
-        for i in range(n)
-    ]
+    steps, frames = data["step"], data["frame_index"]
+    n = len(steps)
+    if len(frames) != n:
+        raise InvalidInputError(path, f"'frame_index' holds {len(frames)} entries for {n} panels")
+    images = {}
+    for key in PANEL_IMAGE_KEYS:
+        if key in data:
+            arr = data[key]
+            if arr.ndim == 0 or len(arr) != n:
+                raise InvalidInputError(
+                    path, f"{key!r} holds {len(arr) if arr.ndim else 0} images for {n} panels"
+                )
+            if key in PANEL_DEPTH_KEYS and arr.dtype.kind != "f":
+                raise InvalidInputError(path, f"{key!r} must be float depth, got {arr.dtype}")
+            images[key] = depth_from_disk(arr) if key in PANEL_DEPTH_KEYS else arr
+    try:
+        return [
+            StepPanel(int(steps[i]), int(frames[i]), **{k: v[i] for k, v in images.items()})
+            for i in range(n)
+        ]
+    except InvalidInputError as exc:  # it names the panel; the file is what the user has
+        raise InvalidInputError(path, f"{exc.source}: {exc.problem}") from None
 
 
 def make_step_panel(

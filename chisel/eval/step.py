@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import logging
 import math
+import zipfile
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +16,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from chisel.core.errors import InvalidInputError
+from chisel.core.errors import InvalidInputError, out_of_memory_names
 from chisel.core.geometry import Camera
 from chisel.eval.masks import (
     CHANGE_THRESHOLD_MM,
@@ -45,6 +47,7 @@ from chisel.eval.tables import (
 )
 from chisel.eval.volume import RemovalScores, model_removal, removal_scores, true_removal
 from chisel.io.images import decode_image
+from chisel.io.limits import check_npz_members
 from chisel.io.meshfile import read_mesh_file
 from chisel.io.sequence import Sequence as SequenceFolder
 
@@ -195,6 +198,51 @@ def load_mesh(path: str | Path, source: str) -> trimesh.Trimesh:
     return read_mesh_file(path, f"{source} mesh")
 
 
+def _read_mask_npz(path: Path, keys: Sequence[str]) -> tuple[list[str], dict[str, np.ndarray]]:
+    """The members ``keys`` (those present) of the untrusted change-mask ``.npz`` at
+    ``path``, and every member's name. Read as a model file is
+    (:meth:`chisel.model.TsdfModel.load`): declared sizes and object arrays refused from
+    the headers first, no pickle, any unreadable archive one error naming the file."""
+    check_npz_members(path)  # object arrays and declared sizes, naming file and member
+    with out_of_memory_names(path, "reading these change masks"):
+        try:
+            loaded = np.load(path, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):
+                raise InvalidInputError(path, "expected an .npz archive with key 'masks'")
+            with loaded as z:
+                return list(z.files), {k: np.asarray(z[k]) for k in keys if k in z.files}
+        except InvalidInputError:  # a ValueError, but it names the file already
+            raise
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InvalidInputError(
+                path, f"cannot read change masks (.npz without pickle): {exc}"
+            ) from None
+
+
+def _frame_index(path: Path, raw: np.ndarray, n: int, n_frames: int) -> np.ndarray:
+    """A mask file's ``frame_index``: ``n`` distinct integer indices in ``0..n_frames-1``
+    (strings or floats are refused, not converted or truncated)."""
+    if raw.dtype.kind not in "iu" or raw.shape != (n,):
+        raise InvalidInputError(
+            path,
+            f"frame_index must be {n} integer-typed frame indices, shape ({n},), got "
+            f"{raw.dtype} {raw.shape}",
+        )
+    if raw.size and (raw.min() < 0 or raw.max() >= n_frames):
+        raise InvalidInputError(
+            path,
+            f"frame_index must hold non-negative indices in 0..{n_frames - 1} (the change "
+            f"sequence's frames), got {raw.min()}..{raw.max()}",
+        )
+    idx = raw.astype(np.int64)
+    if len(np.unique(idx)) != len(idx):
+        values, counts = np.unique(idx, return_counts=True)
+        raise InvalidInputError(
+            path, f"frame_index names frame {int(values[counts > 1][0])} more than once"
+        )
+    return idx
+
+
 def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -> np.ndarray:
     """Read predicted change masks: an ``.npz`` with key ``masks`` or a folder of PNGs.
 
@@ -217,29 +265,17 @@ def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -
         if arr is None:
             raise InvalidInputError(path, "change-mask PNGs differ in size")
     elif path.is_file():
-        try:
-            z = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise InvalidInputError(path, f"cannot read change masks (npz): {exc}") from None
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise InvalidInputError(path, "expected an .npz archive with key 'masks'")
-        with z:
-            if "masks" not in z.files:
-                raise InvalidInputError(path, f"expected key 'masks', found {z.files}")
-            arr = _check_masks(z["masks"], str(path))
-            if "frame_index" in z.files:
-                # `chisel update --masks` stores one mask per frame it considered, with the
-                # frame's index; frames it did not consider count as "no change".
-                idx = np.asarray(z["frame_index"], dtype=np.int64)
-                if idx.shape != (len(arr),) or (
-                    idx.size and (idx.min() < 0 or idx.max() >= n_frames)
-                ):
-                    raise InvalidInputError(
-                        path, f"frame_index must hold {len(arr)} indices in 0..{n_frames - 1}"
-                    )
-                full = np.zeros((n_frames, *arr.shape[1:]), dtype=bool)
-                full[idx] = arr
-                arr = full
+        names, z = _read_mask_npz(path, ("masks", "frame_index"))
+        if "masks" not in z:
+            raise InvalidInputError(path, f"expected key 'masks', found {names}")
+        arr = _check_masks(z["masks"], f"{path}: masks")
+        if "frame_index" in z:
+            # `chisel update --masks` stores one mask per frame it considered, with the
+            # frame's index; frames it did not consider count as "no change".
+            idx = _frame_index(path, z["frame_index"], len(arr), n_frames)
+            full = np.zeros((n_frames, *arr.shape[1:]), dtype=bool)
+            full[idx] = arr
+            arr = full
     else:
         raise InvalidInputError(path, "change masks are missing (expected an .npz or a folder)")
     if arr.shape != (n_frames, *shape):
@@ -263,16 +299,25 @@ def load_mask_poses(path: str | Path, sequence_poses: np.ndarray) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         return poses
-    with np.load(path, allow_pickle=False) as z:
-        if "T_world_from_cam" not in z.files:
-            return poses
-        given = np.asarray(z["T_world_from_cam"], dtype=np.float64)
-        idx = (
-            np.asarray(z["frame_index"], dtype=np.int64)
-            if "frame_index" in z.files
-            else np.arange(len(poses))
+    _names, z = _read_mask_npz(path, ("T_world_from_cam", "frame_index"))
+    if "T_world_from_cam" not in z:
+        return poses
+    given = z["T_world_from_cam"]
+    if given.dtype.kind not in "iuf":
+        raise InvalidInputError(
+            path, f"T_world_from_cam must be numbers (N, 4, 4), got dtype {given.dtype}"
         )
-    if given.shape != (len(idx), 4, 4):
+    if given.ndim != 3 or given.shape[1:] != (4, 4):
+        raise InvalidInputError(
+            path, f"T_world_from_cam must be (N, 4, 4) poses, got shape {given.shape}"
+        )
+    given = given.astype(np.float64)
+    idx = (
+        _frame_index(path, z["frame_index"], len(given), len(poses))
+        if "frame_index" in z
+        else np.arange(len(poses))
+    )
+    if len(given) != len(idx):
         raise InvalidInputError(
             path, f"T_world_from_cam must hold {len(idx)} poses (N, 4, 4), got {given.shape}"
         )

@@ -17,6 +17,7 @@ import numpy as np
 
 from chisel.core.atomic import atomic_write_text
 from chisel.core.errors import InvalidInputError
+from chisel.io.limits import read_text_limited
 from chisel.io.manifest import read_json_manifest
 
 METHODS: tuple[str, ...] = ("no_update", "updated", "depth_ablation", "registration_ablation")
@@ -550,35 +551,53 @@ def write_sweep_csv(path: str | Path, table: SweepTable) -> Path:
 
 
 def read_sweep_csv(path: str | Path) -> SweepTable:
-    """Read a CSV written by :func:`write_sweep_csv`."""
+    """Read a CSV written by :func:`write_sweep_csv`; any malformed row (short, long, not
+    a number) is one error naming the file and its line."""
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "sweep CSV is missing")
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        expected = ["param_name", *SWEEP_COLUMNS]
+    text = read_text_limited(path, "sweep CSV")  # size limit, UTF-8, one error naming it
+    expected = ["param_name", *SWEEP_COLUMNS]
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    raw: list[tuple[int, dict[str | None, Any]]] = []
+    try:
         if reader.fieldnames != expected:
             raise InvalidInputError(path, f"expected columns {expected}, got {reader.fieldnames}")
-        raw = list(reader)
+        for r in reader:
+            raw.append((reader.line_num, r))
+    except csv.Error as exc:  # an over-long field, a stray quote
+        raise InvalidInputError(path, f"line {reader.line_num}: {exc}") from None
     if not raw:
         raise InvalidInputError(path, "sweep CSV has no rows")
-    names = {r["param_name"] for r in raw}
-    if len(names) != 1:
-        raise InvalidInputError(path, f"expected one param_name, got {sorted(names)}")
-    rows = []
-    for i, r in enumerate(raw, start=2):
-        try:
-            rows.append(
-                {
-                    "param_value": float(r["param_value"]),
-                    "step": int(r["step"]),
-                    "method": r["method"],
-                    **{
-                        k: (None if r[k] == "" else (int(r[k]) if k == "n_points" else float(r[k])))
-                        for k in SWEEP_COLUMNS[3:]
-                    },
-                }
+    for line, r in raw:
+        # DictReader fills a short row with None and gathers a long row's extra fields
+        # under the key None.
+        if None in r or any(v is None for v in r.values()):
+            got = sum(v is not None for k, v in r.items() if k is not None)
+            got += len(r.get(None) or [])
+            raise InvalidInputError(
+                path, f"line {line}: expected {len(expected)} fields, got {got}"
             )
+    names = {r["param_name"] for _, r in raw}
+    if len(names) != 1:
+        raise InvalidInputError(path, f"expected one param_name, got {sorted(names)}"[:300])
+    rows = []
+    for line, r in raw:
+        try:
+            row = {
+                "param_value": float(r["param_value"]),
+                "step": int(r["step"]),
+                "method": r["method"],
+                **{
+                    k: (None if r[k] == "" else (int(r[k]) if k == "n_points" else float(r[k])))
+                    for k in SWEEP_COLUMNS[3:]
+                },
+            }
         except ValueError as exc:
-            raise InvalidInputError(path, f"line {i}: {exc}") from None
+            raise InvalidInputError(path, f"line {line}: {exc}"[:300]) from None
+        if not math.isfinite(row["param_value"]):
+            raise InvalidInputError(
+                path, f"line {line}: param_value must be a finite number, got {r['param_value']}"
+            )
+        rows.append(row)
     return SweepTable(names.pop(), rows)

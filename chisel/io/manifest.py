@@ -96,13 +96,25 @@ def read_json_value(path: str | Path, error: type[InvalidInputError] = InvalidIn
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise error(path, f"not a text file (invalid UTF-8 at byte {exc.start})") from None
+    return parse_json_text(path, text, error)
+
+
+def parse_json_text(
+    source: str | Path,
+    text: str,
+    error: type[InvalidInputError] = InvalidInputError,
+    what: str = "",
+) -> Any:
+    """Any JSON value from ``text`` (read from ``source``; ``what`` names a member of it),
+    refused as :func:`read_json_value` refuses it: nesting deeper than
+    :data:`MAX_JSON_DEPTH` (checked before the parser recurses), text that is not JSON."""
+    prefix = f"{what}: " if what else ""
     if _depth(text) > MAX_JSON_DEPTH:
-        raise error(path, f"JSON nested deeper than {MAX_JSON_DEPTH} levels")
+        raise error(Path(source), f"{prefix}JSON nested deeper than {MAX_JSON_DEPTH} levels")
     try:
-        data = json.loads(text)
+        return json.loads(text)
     except (ValueError, RecursionError) as exc:
-        raise error(path, f"invalid JSON: {exc}") from None
-    return data
+        raise error(Path(source), f"{prefix}invalid JSON: {exc}") from None
 
 
 def named_path(
