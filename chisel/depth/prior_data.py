@@ -79,7 +79,9 @@ def read_step_dataset(
 
     The index is a manifest like the monocular one (:func:`chisel.depth.data.
     read_dataset_index`): read through :func:`read_json_manifest`, and every sequence
-    folder it names must lie inside its folder unless ``allow_outside``.
+    folder it names must lie inside its folder unless ``allow_outside``; so must the
+    phantom folder ``phantoms/seed_S`` that an entry's ``phantom_seed`` names (a link there
+    would read another dataset's phantom.json and meshes).
     """
     if not inputs:
         raise InvalidInputError("--data", "no dataset given")
@@ -103,9 +105,13 @@ def read_step_dataset(
             path = named_path(
                 index, e["path"], f"sequences[{i}]", allow_outside=allow_outside, kind="folder"
             )
-            refs.append(
-                StepSequenceRef(path, seed, step, index.parent / "phantoms" / f"seed_{seed}")
+            phantom_dir = named_path(
+                index,
+                f"phantoms/seed_{seed}",
+                f"sequences[{i}].phantom_seed",
+                allow_outside=allow_outside,
             )
+            refs.append(StepSequenceRef(path, seed, step, phantom_dir))
     return refs
 
 
@@ -125,6 +131,7 @@ def check_change_training_seeds(refs: list[StepSequenceRef]) -> None:
 def phantom_step_mesh(phantom_dir: str | Path, step: int) -> trimesh.Trimesh:
     """The surface mesh of surgical step ``step`` of a phantom folder (world mm)."""
     header = Path(phantom_dir) / "phantom.json"
+    named_path(header, header.name, "phantom.json")  # not a link to another phantom's
     listed = read_json_manifest(header).get("steps", [])
     if not isinstance(listed, list):
         raise InvalidInputError(header, f"'steps' must be a list, got {type(listed).__name__}")

@@ -159,12 +159,17 @@ def named_path(
 
 
 def check_inside(
-    manifest: str | Path, path: Path, what: str, *, allow_outside: bool = False
+    manifest: str | Path,
+    path: Path,
+    what: str,
+    *,
+    allow_outside: bool = False,
+    option: str = ALLOW_OUTSIDE_OPTION,
 ) -> Path:
     """Resolve ``path`` (found by listing a folder the manifest names, e.g. one image) and
     refuse it outside the manifest's folder, as :func:`named_path` does: a link inside an
     accepted folder may still point anywhere."""
-    return named_path(manifest, str(path), what, allow_outside=allow_outside)
+    return named_path(manifest, str(path), what, allow_outside=allow_outside, option=option)
 
 
 def check_size(source: str | Path, what: str, count: int, limit: int) -> None:

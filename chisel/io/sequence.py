@@ -13,14 +13,18 @@ per-frame tracked poses (and, for synthetic data, the true poses), optional mask
       camera_mask.png      optional: uint8, 255 inside the endoscope's circular field stop
 
 Readable by a person (JSON, text, PNG) and loadable without pickle (``.npy`` is read with
-``allow_pickle=False``). The one place that converts depth between disk (0 = invalid) and
-memory (NaN = invalid) is :func:`depth_to_disk` / :func:`depth_from_disk`.
+``allow_pickle=False``). Every file is read from inside the folder: a link (a subfolder, a
+frame, ``poses.txt``) that leads out of it is refused
+(:class:`~chisel.core.errors.OutsideManifestError`) unless the caller allows it. The one
+place that converts depth between disk (0 = invalid) and memory (NaN = invalid) is
+:func:`depth_to_disk` / :func:`depth_from_disk`.
 """
 
 from __future__ import annotations
 
 import errno
 import json
+import os
 import warnings
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
@@ -44,10 +48,11 @@ from chisel.core.errors import (
 from chisel.core.geometry import Camera, check_rigid
 from chisel.io.images import PNG_MAGIC, decode_image
 from chisel.io.limits import MAX_IMAGE_SIDE_PX, check_npy_header, read_text_limited
-from chisel.io.manifest import json_type, read_json_manifest
+from chisel.io.manifest import check_inside, json_type, read_json_manifest
 from chisel.io.undistort import check_lens_model
 
 SEQUENCE_FORMAT = "endoscopic-chisel/sequence"
+ALLOW_OUTSIDE_SEQUENCE = "allow_outside=True to chisel.io.sequence.Sequence"
 SEQUENCE_VERSION = 1
 
 MIN_PLAUSIBLE_MEDIAN_DEPTH_MM = 0.5
@@ -386,14 +391,24 @@ def _header_camera(value: object, source: Path) -> Camera:
 class Sequence:
     """A sequence folder opened for reading; frames are loaded lazily.
 
-    Raises :class:`InvalidInputError` subclasses naming the file on any malformed part.
+    Raises :class:`InvalidInputError` subclasses naming the file on any malformed part, and
+    :class:`~chisel.core.errors.OutsideManifestError` for a file or subfolder that is a link
+    leading out of the folder (another patient's frames, ``/etc/...``), unless
+    ``allow_outside``. Hard links and links that stay inside are read.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    SUBFOLDERS = ("rgb", "depth", "mask")
+
+    def __init__(self, path: str | Path, allow_outside: bool = False) -> None:
         self.path = Path(path)
+        self.allow_outside = allow_outside
         header_path = self.path / "sequence.json"
+        self._header_path = header_path
         if not header_path.is_file():
             raise InvalidInputError(self.path, "not a sequence folder: sequence.json is missing")
+        # Checked once here: a file below a subfolder then needs only its own lstat.
+        for name in ("sequence.json", *self.SUBFOLDERS):
+            self._inside(name, "the header" if name == "sequence.json" else f"folder {name}/")
         header = read_json_manifest(header_path)
         if header.get("format") != SEQUENCE_FORMAT:
             raise FormatVersionError(
@@ -437,7 +452,7 @@ class Sequence:
         self.has_rgb = _header_flag(header, "has_rgb", header_path)
         self.has_depth = _header_flag(header, "has_depth", header_path)
         self.has_mask = _header_flag(header, "has_mask", header_path)
-        self.poses = read_poses_txt(self.path / "poses.txt")
+        self.poses = read_poses_txt(self._inside("poses.txt", "poses"))
         if len(self.poses) != self.num_frames:
             raise PoseError(
                 self.path / "poses.txt",
@@ -454,7 +469,7 @@ class Sequence:
             check_pose_units(self.poses, "mm", str(self.path / "poses.txt"), "world", fix)
         self.true_poses: np.ndarray | None = None
         if _header_flag(header, "has_true_poses", header_path):
-            true_path = self.path / "poses_true.txt"
+            true_path = self._inside("poses_true.txt", "true poses")
             if not true_path.is_file():
                 raise PoseError(true_path, "file is missing but sequence.json sets has_true_poses")
             self.true_poses = read_poses_txt(true_path)
@@ -464,7 +479,7 @@ class Sequence:
                 )
         self.camera_mask: np.ndarray | None = None
         if _header_flag(header, "has_camera_mask", header_path):
-            mask_path = self.path / "camera_mask.png"
+            mask_path = self._inside("camera_mask.png", "camera mask")
             self.camera_mask = self._read_mask(mask_path)
             if not self.camera_mask.any():
                 raise InvalidInputError(mask_path, "camera mask keeps no pixel (all black)")
@@ -474,6 +489,18 @@ class Sequence:
 
     def __len__(self) -> int:
         return self.num_frames
+
+    def _inside(self, name: str, what: str) -> Path:
+        """``self.path / name`` (``name`` relative, made by this reader: no ``..``), refused
+        if it is a link that resolves outside the sequence folder. The subfolders are checked
+        in ``__init__``, so one ``lstat`` per file read suffices (no resolve on the frame path
+        unless the file is a link)."""
+        path = self.path / name
+        if not self.allow_outside and os.path.islink(path):
+            # No command has an option for it: reading such a sequence is a choice made
+            # in Python (the message must not name a flag `chisel update` lacks).
+            check_inside(self._header_path, Path(name), what, option=ALLOW_OUTSIDE_SEQUENCE)
+        return path
 
     def _read_png(self, path: Path, gray: bool) -> np.ndarray:
         if not path.is_file():
@@ -505,13 +532,13 @@ class Sequence:
         """(H, W, 3) uint8 RGB of frame ``i``."""
         if not self.has_rgb:
             raise InvalidInputError(self.path, "sequence has no RGB")
-        return self._read_png(self.path / "rgb" / f"{i:06d}.png", gray=False)
+        return self._read_png(self._inside(f"rgb/{i:06d}.png", f"rgb frame {i}"), gray=False)
 
     def depth_mm(self, i: int) -> np.ndarray:
         """(H, W) float32 z-depth of frame ``i`` in mm, NaN = invalid."""
         if not self.has_depth:
             raise InvalidInputError(self.path, "sequence has no depth")
-        path = self.path / "depth" / f"{i:06d}.npy"
+        path = self._inside(f"depth/{i:06d}.npy", f"depth frame {i}")
         if not path.is_file():
             raise InvalidInputError(path, "file is missing")
         with out_of_memory_names(path, "reading this depth map"):
@@ -550,7 +577,7 @@ class Sequence:
         """(H, W) bool mask of frame ``i`` (per-frame mask AND camera mask), or None."""
         m = None
         if self.has_mask:
-            m = self._read_mask(self.path / "mask" / f"{i:06d}.png")
+            m = self._read_mask(self._inside(f"mask/{i:06d}.png", f"mask frame {i}"))
         if self.camera_mask is not None:
             m = self.camera_mask if m is None else (m & self.camera_mask)
         return m
