@@ -26,7 +26,6 @@ leaves a half-written model behind.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -34,12 +33,12 @@ from typing import Literal
 import numpy as np
 
 from chisel.core.atomic import atomic_savez
-from chisel.core.errors import FormatVersionError, InvalidInputError, out_of_memory_names
+from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.io.limits import (
     MAX_PLACEMENT_MM,
     MAX_VOXEL_SIZE_MM,
     MIN_VOXEL_SIZE_MM,
-    check_npz_members,
+    read_npz,
 )
 
 MODEL_FORMAT = "endoscopic-chisel/model"
@@ -257,20 +256,7 @@ class TsdfModel:
         path = Path(path)
         if not path.is_file():
             raise InvalidInputError(path, "model file is missing")
-        check_npz_members(path)  # declared array sizes, before anything is unpacked
-        # Outside the try: its ValueError clause would rewrap the error naming the file.
-        with out_of_memory_names(path, "reading this model file"):
-            try:
-                loaded = np.load(path, allow_pickle=False)
-                if isinstance(loaded, np.lib.npyio.NpzFile):
-                    with loaded as z:
-                        data = {k: z[k] for k in z.files}
-            except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
-                raise InvalidInputError(
-                    path, f"cannot read model (.npz without pickle): {exc}"
-                ) from None
-        if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array
-            raise InvalidInputError(path, "not a model file: a single .npy array, not an .npz")
+        data = read_npz(path, "model")
         fmt = str(data.get("format", ""))
         if fmt != MODEL_FORMAT:
             raise FormatVersionError(path, f"format is {fmt!r}, expected {MODEL_FORMAT!r}")

@@ -290,7 +290,7 @@ REPORT_CASES: list[tuple[str, str, str, Callable[[Path], None], type[Exception],
         "p.npz",
         _bytes(NOT_A_ZIP),
         InvalidInputError,
-        r": cannot read panels \(npz without pickle\)",
+        r": cannot read panels \(\.npz without pickle\)",
     ),
     (
         "ct_meta_not_an_object",

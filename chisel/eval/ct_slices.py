@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import html
 import json
-import zipfile
-import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,11 +37,11 @@ import numpy as np
 from scipy import ndimage
 
 from chisel.core.atomic import atomic_savez
-from chisel.core.errors import FormatVersionError, InvalidInputError, out_of_memory_names
+from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.eval.metrics import RoiBox
 from chisel.eval.panels import png_data_uri
 from chisel.io.ct import DEFAULT_HU_ISO, CtVolume
-from chisel.io.limits import check_npz_members
+from chisel.io.limits import read_npz
 from chisel.io.manifest import MAX_MANIFEST_BYTES, json_type, parse_json_text
 
 CT_SLICES_FORMAT = "endoscopic-chisel/ct-slices"
@@ -409,20 +407,7 @@ def read_ct_slices(path: str | Path) -> list[CtSlice]:
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "CT slices file is missing")
-    check_npz_members(path)  # object arrays and declared sizes, naming file and member
-    with out_of_memory_names(path, "reading this CT slices file"):
-        try:
-            loaded = np.load(path, allow_pickle=False)
-            if not isinstance(loaded, np.lib.npyio.NpzFile):
-                raise InvalidInputError(path, "expected an .npz archive")
-            with loaded as z:
-                data = {k: np.asarray(z[k]) for k in z.files}
-        except InvalidInputError:  # a ValueError, but it names the file already
-            raise
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-            raise InvalidInputError(
-                path, f"cannot read CT slices (npz, no pickle): {exc}"
-            ) from None
+    data = read_npz(path, "CT slices")
     meta = _read_meta(path, data["meta"]) if "meta" in data else {}
     if meta.get("format") != CT_SLICES_FORMAT:
         raise FormatVersionError(path, f"not a CT slices file (format {CT_SLICES_FORMAT!r})")

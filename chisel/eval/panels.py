@@ -6,8 +6,6 @@ Split out of :mod:`chisel.eval.report` (which re-exports these names).
 from __future__ import annotations
 
 import base64
-import zipfile
-import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,10 +15,10 @@ import numpy as np
 import trimesh
 
 from chisel.core.atomic import atomic_savez
-from chisel.core.errors import FormatVersionError, InvalidInputError, out_of_memory_names
+from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.core.geometry import Camera
 from chisel.core.raycast import MeshRaycaster
-from chisel.io.limits import check_npz_members
+from chisel.io.limits import read_npz
 from chisel.io.sequence import Frame as SeqFrame
 from chisel.io.sequence import depth_from_disk, depth_to_disk
 
@@ -161,20 +159,7 @@ def read_panels(path: str | Path) -> list[StepPanel]:
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(path, "panels file is missing")
-    check_npz_members(path)  # object arrays and declared sizes, naming file and member
-    with out_of_memory_names(path, "reading this panels file"):
-        try:
-            loaded = np.load(path, allow_pickle=False)
-            if not isinstance(loaded, np.lib.npyio.NpzFile):
-                raise InvalidInputError(path, "expected an .npz archive")
-            with loaded as z:
-                data = {k: np.asarray(z[k]) for k in z.files}
-        except InvalidInputError:  # a ValueError, but it names the file already
-            raise
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-            raise InvalidInputError(
-                path, f"cannot read panels (npz without pickle): {exc}"
-            ) from None
+    data = read_npz(path, "panels")
     if "format" not in data or data["format"].tolist() != PANELS_FORMAT:
         raise FormatVersionError(path, f"not a panels file (format must be {PANELS_FORMAT!r})")
     if "version" not in data:

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import logging
 import math
-import zipfile
-import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +14,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from chisel.core.errors import InvalidInputError, out_of_memory_names
+from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera
 from chisel.eval.masks import (
     CHANGE_THRESHOLD_MM,
@@ -47,7 +45,7 @@ from chisel.eval.tables import (
 )
 from chisel.eval.volume import RemovalScores, model_removal, removal_scores, true_removal
 from chisel.io.images import decode_image
-from chisel.io.limits import check_npz_members
+from chisel.io.limits import read_npz
 from chisel.io.meshfile import read_mesh_file
 from chisel.io.sequence import Sequence as SequenceFolder
 
@@ -198,27 +196,6 @@ def load_mesh(path: str | Path, source: str) -> trimesh.Trimesh:
     return read_mesh_file(path, f"{source} mesh")
 
 
-def _read_mask_npz(path: Path, keys: Sequence[str]) -> tuple[list[str], dict[str, np.ndarray]]:
-    """The members ``keys`` (those present) of the untrusted change-mask ``.npz`` at
-    ``path``, and every member's name. Read as a model file is
-    (:meth:`chisel.model.TsdfModel.load`): declared sizes and object arrays refused from
-    the headers first, no pickle, any unreadable archive one error naming the file."""
-    check_npz_members(path)  # object arrays and declared sizes, naming file and member
-    with out_of_memory_names(path, "reading these change masks"):
-        try:
-            loaded = np.load(path, allow_pickle=False)
-            if not isinstance(loaded, np.lib.npyio.NpzFile):
-                raise InvalidInputError(path, "expected an .npz archive with key 'masks'")
-            with loaded as z:
-                return list(z.files), {k: np.asarray(z[k]) for k in keys if k in z.files}
-        except InvalidInputError:  # a ValueError, but it names the file already
-            raise
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-            raise InvalidInputError(
-                path, f"cannot read change masks (.npz without pickle): {exc}"
-            ) from None
-
-
 def _frame_index(path: Path, raw: np.ndarray, n: int, n_frames: int) -> np.ndarray:
     """A mask file's ``frame_index``: ``n`` distinct integer indices in ``0..n_frames-1``
     (strings or floats are refused, not converted or truncated)."""
@@ -265,9 +242,9 @@ def load_change_masks(path: str | Path, n_frames: int, shape: tuple[int, int]) -
         if arr is None:
             raise InvalidInputError(path, "change-mask PNGs differ in size")
     elif path.is_file():
-        names, z = _read_mask_npz(path, ("masks", "frame_index"))
+        z = read_npz(path, "change masks")
         if "masks" not in z:
-            raise InvalidInputError(path, f"expected key 'masks', found {names}")
+            raise InvalidInputError(path, f"expected key 'masks', found {sorted(z)}")
         arr = _check_masks(z["masks"], f"{path}: masks")
         if "frame_index" in z:
             # `chisel update --masks` stores one mask per frame it considered, with the
@@ -299,7 +276,7 @@ def load_mask_poses(path: str | Path, sequence_poses: np.ndarray) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         return poses
-    _names, z = _read_mask_npz(path, ("T_world_from_cam", "frame_index"))
+    z = read_npz(path, "change masks")
     if "T_world_from_cam" not in z:
         return poses
     given = z["T_world_from_cam"]

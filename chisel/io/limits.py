@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import struct
 import zipfile
+import zlib
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 
-from chisel.core.errors import InvalidInputError, ResourceLimitError
+from chisel.core.errors import InvalidInputError, ResourceLimitError, out_of_memory_names
 
 MAX_ARRAY_BYTES = 8 * 2**30
 """Largest array read from one ``.npy`` / ``.npz`` member (a 512^3 float32 TSDF is 0.5 GiB)."""
@@ -118,6 +119,33 @@ def check_npz_members(path: str | Path) -> None:
         NotImplementedError,
     ) as exc:
         raise InvalidInputError(path, f"not a readable .npz archive: {exc}") from None
+
+
+def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
+    """Every member of the untrusted ``.npz`` at ``path`` (a ``what``: "model", "panels").
+
+    Declared sizes and object arrays are refused from the headers first
+    (:func:`check_npz_members`), then it is read without pickle; a bare ``.npy``, an archive
+    that does not open or a member that does not decompress is one
+    :class:`InvalidInputError` naming the file, running out of memory a
+    :class:`ResourceLimitError` naming it."""
+    path = Path(path)
+    check_npz_members(path)
+    with out_of_memory_names(path, f"reading this {what} file"):
+        try:
+            loaded = np.load(path, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):
+                raise InvalidInputError(
+                    path, f"not a {what} file: a single .npy array, not an .npz archive"
+                )
+            with loaded as z:
+                return {k: np.asarray(z[k]) for k in z.files}
+        except InvalidInputError:  # a ValueError, but it names the file already
+            raise
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InvalidInputError(
+                path, f"cannot read {what} (.npz without pickle): {exc}"
+            ) from None
 
 
 def png_size(path: str | Path) -> tuple[int, int] | None:
