@@ -17,38 +17,15 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from small_sequences import CAM, write_small_sequence
 
 import chisel.io.sequence as seqmod
 from chisel.core.errors import CameraError, InvalidInputError, OutputError, PoseError
-from chisel.core.geometry import Camera, look_at
-from chisel.io.sequence import Frame, Sequence, write_sequence
+from chisel.io.sequence import Sequence
 from sim.cli import main
 from sim.config import TrackingConfig
 from sim.nerfstudio import export_nerfstudio
 from sim.retrack import retrack_sequence
-
-CAM = Camera.from_fov(32, 24, 80)
-
-
-def write_seq(path: Path) -> Path:
-    """A small synthetic sequence with RGB, depth, masks, true poses and a camera mask."""
-    rng = np.random.default_rng(0)
-    frames = []
-    for i in range(3):
-        T = look_at([i, 0.0, 0.0], [i, 0.0, 30.0], up=[0, -1, 0])
-        frames.append(
-            Frame(
-                i,
-                T,
-                rng.integers(0, 255, (*CAM.shape, 3), dtype=np.uint8),
-                rng.uniform(5, 20, CAM.shape).astype(np.float32),
-                rng.random(CAM.shape) > 0.2,
-                T,
-            )
-        )
-    circle = np.ones(CAM.shape, bool)
-    circle[0] = False
-    return write_sequence(path, CAM, frames, camera_mask=circle)
 
 
 def tree(folder: Path) -> dict[str, bytes]:
@@ -62,7 +39,7 @@ def leftovers(folder: Path) -> list[str]:
 
 @pytest.fixture
 def seq(tmp_path: Path) -> Path:
-    return write_seq(tmp_path / "render" / "preop")
+    return write_small_sequence(tmp_path / "render" / "preop")
 
 
 # --- 1. an output over the input --------------------------------------------------------

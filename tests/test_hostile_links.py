@@ -21,40 +21,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from small_sequences import write_small_sequence
 
 from chisel.cli import main as chisel_main
 from chisel.core.errors import OutsideManifestError
-from chisel.core.geometry import Camera, look_at
 from chisel.depth.prior_data import phantom_step_mesh, read_step_dataset
 from chisel.io.ct import load_ct_surface, read_ct_volume
-from chisel.io.sequence import Frame, Sequence, write_sequence
+from chisel.io.sequence import Frame, Sequence
 from sim.cli import main as sim_main
 from sim.nerfstudio import export_nerfstudio
 
-CAM = Camera.from_fov(32, 24, 80)
-
 # --- 1. a sequence folder ---------------------------------------------------------------
-
-
-def write_seq(path: Path, seed: int = 0) -> Path:
-    """Three frames with RGB, depth, masks, true poses and a camera mask."""
-    rng = np.random.default_rng(seed)
-    frames = []
-    for i in range(3):
-        T = look_at(np.array([i, 0.0, 0.0]), np.array([i, 0.0, 30.0]), up=np.array([0.0, -1, 0]))
-        frames.append(
-            Frame(
-                i,
-                T,
-                rng.integers(0, 255, (*CAM.shape, 3), dtype=np.uint8),
-                rng.uniform(5, 20, CAM.shape).astype(np.float32),
-                rng.random(CAM.shape) > 0.2,
-                T,
-            )
-        )
-    circle = np.ones(CAM.shape, bool)
-    circle[0] = False
-    return write_sequence(path, CAM, frames, camera_mask=circle)
 
 
 def read_all(path: Path, allow_outside: bool = False) -> list[Frame]:
@@ -90,7 +67,9 @@ PARTS = [
 @pytest.fixture
 def two_seqs(tmp_path: Path) -> tuple[Path, Path]:
     """A patient's sequence and, beside it, another patient's (same camera, other data)."""
-    return write_seq(tmp_path / "patient_a" / "seq"), write_seq(tmp_path / "patient_b" / "seq", 1)
+    return write_small_sequence(tmp_path / "patient_a" / "seq"), write_small_sequence(
+        tmp_path / "patient_b" / "seq", 1
+    )
 
 
 @pytest.mark.parametrize("part", PARTS)
@@ -118,12 +97,12 @@ def test_sequence_part_linking_out_reads_when_allowed(
 def test_sequence_part_linking_inside_reads(tmp_path: Path, part: str) -> None:
     """Positive control: the same link, to a copy kept inside the folder, reads; so do
     hard links (they are no links)."""
-    seq = write_seq(tmp_path / "seq")
-    spare = write_seq(seq / "spare", 1)  # a copy inside the sequence folder
+    seq = write_small_sequence(tmp_path / "seq")
+    spare = write_small_sequence(seq / "spare", 1)  # a copy inside the sequence folder
     replace_by_link(seq / part, spare / part)
     frames = read_all(seq)
     assert len(frames) == 3
-    hard = write_seq(tmp_path / "hard")
+    hard = write_small_sequence(tmp_path / "hard")
     for name in ("rgb/000001.png", "depth/000001.npy", "poses.txt"):
         (hard / name).unlink()
         os.link(spare / name, hard / name)
@@ -149,7 +128,7 @@ def test_export_nerfstudio_of_a_linked_frame_writes_nothing(
 
 def test_export_nerfstudio_of_an_inside_link_copies_it(tmp_path: Path) -> None:
     """Positive control of the export: a link that stays inside is exported."""
-    seq = write_seq(tmp_path / "seq")
+    seq = write_small_sequence(tmp_path / "seq")
     (seq / "rgb" / "000002.png").unlink()
     (seq / "rgb" / "000002.png").symlink_to("000000.png")
     path = export_nerfstudio(seq, tmp_path / "ns")
