@@ -558,26 +558,21 @@ def read_sweep_csv(path: str | Path) -> SweepTable:
         raise InvalidInputError(path, "sweep CSV is missing")
     text = read_text_limited(path, "sweep CSV")  # size limit, UTF-8, one error naming it
     expected = ["param_name", *SWEEP_COLUMNS]
-    reader = csv.DictReader(io.StringIO(text, newline=""))
-    raw: list[tuple[int, dict[str | None, Any]]] = []
+    reader = csv.reader(io.StringIO(text, newline=""))
+    raw: list[tuple[int, dict[str, str]]] = []
     try:
-        if reader.fieldnames != expected:
-            raise InvalidInputError(path, f"expected columns {expected}, got {reader.fieldnames}")
-        for r in reader:
-            raw.append((reader.line_num, r))
+        header = next(reader, None)
+        if header != expected:
+            raise InvalidInputError(path, f"expected columns {expected}, got {header}"[:300])
+        for fields in reader:  # a blank line too is a row of the wrong length
+            if len(fields) != len(expected):
+                got = f"expected {len(expected)} fields, got {len(fields)}"
+                raise InvalidInputError(path, f"line {reader.line_num}: {got}")
+            raw.append((reader.line_num, dict(zip(expected, fields, strict=True))))
     except csv.Error as exc:  # an over-long field, a stray quote
         raise InvalidInputError(path, f"line {reader.line_num}: {exc}") from None
     if not raw:
         raise InvalidInputError(path, "sweep CSV has no rows")
-    for line, r in raw:
-        # DictReader fills a short row with None and gathers a long row's extra fields
-        # under the key None.
-        if None in r or any(v is None for v in r.values()):
-            got = sum(v is not None for k, v in r.items() if k is not None)
-            got += len(r.get(None) or [])
-            raise InvalidInputError(
-                path, f"line {line}: expected {len(expected)} fields, got {got}"
-            )
     names = {r["param_name"] for _, r in raw}
     if len(names) != 1:
         raise InvalidInputError(path, f"expected one param_name, got {sorted(names)}"[:300])
