@@ -18,6 +18,19 @@ from sim.errors import ConfigError
 ToolKind = Literal["forceps", "suction", "microdebrider"]
 MAX_SMOKE_DENSITY_PER_MM = 1.0
 """Densest smoke accepted, 1/mm: beyond it a 1 mm layer hides the tissue."""
+CONDUCTOR_MATERIALS = (
+    "none",
+    *("Ag Al AlAs AlAs_palik AlSb AlSb_palik Au Be Be_palik Cr CsI CsI_palik Cu Cu2O").split(),
+    *("Cu2O_palik CuO CuO_palik Cu_palik Hg HgTe HgTe_palik Hg_palik Ir Ir_palik K").split(),
+    *("K_palik Li Li_palik MgO MgO_palik Mo Mo_palik Na_palik Nb Nb_palik Ni_palik Rh").split(),
+    *("Rh_palik Se Se-e Se-e_palik Se_palik SiC SiC_palik SnTe SnTe_palik Ta Ta_palik").split(),
+    *("Te Te-e Te-e_palik Te_palik ThF4 ThF4_palik TiC TiC_palik TiN TiN_palik TiO2").split(),
+    *("TiO2-e TiO2-e_palik TiO2_palik VC VC_palik VN VN_palik V_palik W a-C d-C").split(),
+    "d-C_palik",
+)
+"""The ``material`` names of Mitsuba's conductor plugins: its ``data/ior/<name>.eta.spd``
+spectra (Mitsuba 3), and ``none`` (a perfect mirror). Any other name fails when the scene
+loads ("data/ior/<name>.eta.spd does not exist"), so ``tools.material`` is checked here."""
 
 
 @dataclass(frozen=True)
@@ -106,7 +119,15 @@ class ToolsConfig:
             f"must be in [0.01, 1], got {self.roughness}",
         )
         check(0.0 <= self.diffuse <= 1.0, "tools.diffuse", f"must be in [0, 1], got {self.diffuse}")
-        check(self.max_tries >= 1, "tools.max_tries", f"must be >= 1, got {self.max_tries}")
+        if self.material not in CONDUCTOR_MATERIALS:
+            same = [m for m in CONDUCTOR_MATERIALS if m.lower() == self.material.lower()]
+            hint = f" (did you mean {same[0]!r}?)" if same else ""
+            raise ConfigError(
+                "tools.material",
+                f"expected a Mitsuba conductor material (Cr, Al, Ag, Au, Cu, W, ...: the "
+                f"{len(CONDUCTOR_MATERIALS)} names of sim/config_effects.py "
+                f"CONDUCTOR_MATERIALS), got {self.material[:80]!r}{hint}",
+            )
 
 
 @dataclass(frozen=True)

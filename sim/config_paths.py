@@ -20,6 +20,26 @@ MAX_FRAMES = 100_000
 """Largest number of frames (or evaluation poses) of one sequence."""
 MIN_CLEARANCE_MM = 0.1
 """Smallest camera-to-tissue clearance of the paths, mm."""
+MAX_LATENCY_FRAMES = 10_000
+"""Largest tracking latency, frames (beyond a sequence's length every frame reports its
+first pose)."""
+TRACKING_LIMITS = (
+    ("jitter_mm", 100.0, "mm"),
+    ("jitter_deg", 180.0, "degrees"),
+    ("handeye_mm", 1000.0, "mm"),
+    ("handeye_deg", 180.0, "degrees"),
+    ("latency_frames", MAX_LATENCY_FRAMES, "frames"),
+)
+"""``tracking`` fields and their largest values: errors far beyond any real navigation
+system (a 1e300 degree rotation is no rotation NumPy can build; 1e20 frames overflow)."""
+TRACKING_OPTIONS = {
+    "jitter_mm": "sim render --pose-noise-mm, sim retrack --jitter-mm",
+    "jitter_deg": "sim render --pose-noise-deg, sim retrack --jitter-deg",
+    "handeye_mm": "sim retrack --handeye-mm",
+    "handeye_deg": "sim retrack --handeye-deg",
+    "latency_frames": "sim retrack --latency-frames",
+}
+"""The command-line options that set each ``tracking`` field."""
 
 
 @dataclass(frozen=True)
@@ -112,11 +132,10 @@ class TrackingConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, error=ConfigError, section="tracking")
-        for name in ("jitter_mm", "jitter_deg", "handeye_mm", "handeye_deg"):
+        for name, hi, unit in TRACKING_LIMITS:
             v = getattr(self, name)
-            check(v >= 0, f"tracking.{name}", f"must be a finite number >= 0, got {v}")
-        check(
-            self.latency_frames >= 0,
-            "tracking.latency_frames",
-            f"must be >= 0, got {self.latency_frames}",
-        )
+            check(
+                0 <= v <= hi,
+                f"tracking.{name}",
+                f"must be in [0, {hi:g}] {unit} ({TRACKING_OPTIONS[name]}), got {v}",
+            )

@@ -37,8 +37,9 @@ from tqdm import tqdm
 
 from chisel.core.atomic import atomic_write_text
 from chisel.core.config import seed_list
+from chisel.core.errors import InvalidInputError
 from chisel.core.mitsuba_variant import load_mitsuba
-from chisel.io.manifest import read_json_manifest
+from chisel.io.manifest import named_path, read_json_manifest
 from sim.config import SimConfig, config_to_dict
 from sim.errors import ConfigError, PhantomError, SimError
 from sim.pipeline import drawn_config, render_phantom
@@ -322,16 +323,27 @@ def _finished_render(header_path: Path, cfg: SimConfig, bites: int) -> dict[str,
 
     A seed is finished when its render.json reads (through the bounded JSON reader) and
     every sequence it lists is there; a half-deleted one is rendered again, and so is one
-    whose render.json is corrupt (with a warning naming it). A finished seed rendered
-    with other options than this run's is refused: resuming would mix them in one dataset.
+    whose render.json is corrupt (with a warning naming it). So is one whose sequence
+    names are not plain folder names inside ``seed_S`` (``../x``, an absolute path, a link
+    out): nothing outside the seed's folder is read or listed through its render.json. A
+    finished seed rendered with other options than this run's is refused: resuming would
+    mix them in one dataset.
     """
     if not header_path.exists():
         return None
     try:
         header = read_json_manifest(header_path, SimError)
-        names = [header["sequences"]["preop"], *header["sequences"]["steps"].values()]
+        sequences = header["sequences"]
+        steps = sequences["steps"]
+        names = [sequences["preop"], *steps.values()]
+        keys = ["sequences.preop", *(f"sequences.steps.{k}" for k in steps)]
         recorded, num_steps = header["config"], int(header["num_steps"])
-    except SimError as exc:
+        for k in steps:  # build_dataset sorts them by number
+            if not (k.isascii() and k.isdigit()):
+                raise SimError(header_path, f"sequences.steps: a key is not a step number: {k!r}")
+        for name, key in zip(names, keys, strict=True):
+            _check_sequence_name(header_path, name, key)
+    except InvalidInputError as exc:  # unreadable; a name outside seed_S
         log.warning("rendering again: %s", exc)
         return None
     except (ValueError, KeyError, TypeError, AttributeError):
@@ -351,6 +363,18 @@ def _finished_render(header_path: Path, cfg: SimConfig, bites: int) -> dict[str,
             "use the same options or another --out",
         )
     return header
+
+
+def _check_sequence_name(header_path: Path, name: object, key: str) -> None:
+    """``name`` (the value of ``key`` in ``header_path``) must be a plain folder name that
+    resolves, links followed, to a folder beside ``header_path``; else :class:`SimError`
+    naming the file and the key."""
+    if not isinstance(name, str) or name in ("", ".", "..") or any(c in name for c in "/\\"):
+        raise SimError(header_path, f"{key}: expected a sequence folder name, got {name!r}"[:300])
+    root = header_path.absolute().parent.resolve()
+    resolved = named_path(header_path, name, key, allow_outside=True)  # a link loop: refused
+    if resolved.parent != root:
+        raise SimError(header_path, f"{key}: {name!r} is {resolved}, outside {root}"[:400])
 
 
 def _num_frames(sequence_json: Path) -> int:
