@@ -17,6 +17,15 @@ from chisel.fusion import integrate
 from chisel.mesh import extract_mesh
 from chisel.model import TsdfModel
 
+MIN_CT_WEIGHT = 1e-6
+"""Smallest CT weight: a millionth of one frame's; below ~1e-45 float32 holds 0 and the
+CT's voxels would read as never observed."""
+MAX_CT_WEIGHT = 1e6
+"""Largest CT weight. Weights are float32 and every frame that sees a voxel adds 1: above
+2^24 (1.7e7) adding 1 no longer changes a float32, so the updates would be ignored
+silently, and 1e300 became inf, a model ``chisel update`` refuses. 1e6 outweighs any sweep
+and still leaves 10^7 frames of headroom."""
+
 
 @dataclass(frozen=True)
 class BuildConfig:
@@ -33,14 +42,19 @@ class BuildConfig:
     color: bool = False
     """Keep colour (from the frames' RGB) in the model."""
     ct_weight: float = 1.0
-    """CT build: the initial weight of every voxel the CT covers (the sweep adds its own)."""
+    """CT build: the initial weight of every voxel the CT covers (the sweep adds its own);
+    1e-6 to 1e6."""
     max_miss_fraction: float = 0.05
     """CT build: a preop frame with more than this fraction of its rays leaving the CT
     without meeting tissue means the CT's grid does not cover the view (refused)."""
 
     def __post_init__(self) -> None:
-        if not (self.ct_weight > 0 and np.isfinite(self.ct_weight)):
-            raise InvalidInputError("ct_weight", f"must be > 0, got {self.ct_weight}")
+        if not MIN_CT_WEIGHT <= self.ct_weight <= MAX_CT_WEIGHT:  # NaN fails too
+            raise InvalidInputError(
+                "ct_weight",
+                f"must be in [{MIN_CT_WEIGHT:g}, {MAX_CT_WEIGHT:g}] (weights are float32; "
+                f"a frame adds 1), got {self.ct_weight}",
+            )
         if not 0.0 <= self.max_miss_fraction <= 1.0:
             raise InvalidInputError(
                 "max_miss_fraction", f"must be in [0, 1], got {self.max_miss_fraction}"

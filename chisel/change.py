@@ -22,10 +22,10 @@ import numba
 import numpy as np
 
 from chisel.core.config import check_fields
-from chisel.core.errors import EmptyResultError, InvalidInputError
+from chisel.core.errors import ConfigError, EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
 from chisel.fusion import distort
-from chisel.io.limits import MAX_IMAGE_SIDE_PX
+from chisel.io.limits import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX
 
 MIN_SCALE_PIXELS = 50
 """Fewest pixels valid in both the render and the estimate for a scale to be solved."""
@@ -33,6 +33,15 @@ NOISE_TAIL_RATIO = 3.0
 """The noise-adaptive threshold's spread is at most this many times the shallow side's."""
 MAX_SCALE_PIXELS = 8000
 """About this many pixels (a regular stride) enter the scale's medians."""
+MAX_CHANGE_MM = 1e3
+"""Largest change threshold or visibility distance, mm: a metre is past any endoscopic
+scene, so a larger value is a unit slip (um for mm) that would switch detection off."""
+MAX_MIN_VIEWS = 10_000
+"""Largest ``min_views``: a step holds tens of frames (24 in config/config.yaml); more
+other frames than any step holds would refuse every change, silently."""
+MAX_NOISE_K = 100.0
+"""Largest ``noise_k``: 100 robust deviations put the threshold past any depth error,
+switching detection off (3 is the default)."""
 
 
 @dataclass(frozen=True)
@@ -71,26 +80,29 @@ class ChangeConfig:
     (:func:`frame_threshold`)."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "change")
-        if not (np.isfinite(self.threshold_mm) and self.threshold_mm > 0):
-            raise InvalidInputError("threshold_mm", f"must be > 0 mm, got {self.threshold_mm}")
-        if not 0.0 <= self.min_agreement <= 1.0:
-            raise InvalidInputError("min_agreement", f"must be in [0, 1], got {self.min_agreement}")
-        if not (np.isfinite(self.noise_k) and self.noise_k >= 0):
-            raise InvalidInputError("noise_k", f"must be >= 0, got {self.noise_k}")
-        if not self.visible_mm > 0:
-            raise InvalidInputError("visible_mm", f"must be > 0 mm, got {self.visible_mm}")
-        for name in ("open_px", "close_px", "min_area_px", "min_views"):
-            if int(getattr(self, name)) < 0:
-                raise InvalidInputError(name, f"must be >= 0, got {getattr(self, name)}")
-        # A kernel wider than any image is meaningless, and OpenCV would allocate its square.
-        for name in ("open_px", "close_px"):
-            if int(getattr(self, name)) > MAX_IMAGE_SIDE_PX:
-                raise InvalidInputError(
-                    name,
-                    f"must be at most {MAX_IMAGE_SIDE_PX} px (the widest image read), "
-                    f"got {getattr(self, name)}",
-                )
+        check_fields(self, "change")  # kinds, NaN and infinity
+        d = MAX_CHANGE_MM
+        checks = (
+            ("threshold_mm", 0 < self.threshold_mm <= d, f"in (0, {d:g}] mm"),
+            ("open_px", self.open_px >= 0, ">= 0"),
+            ("close_px", self.close_px >= 0, ">= 0"),
+            # A kernel wider than any image is meaningless, and OpenCV would allocate its square.
+            ("open_px", self.open_px <= MAX_IMAGE_SIDE_PX,
+             f"at most {MAX_IMAGE_SIDE_PX} px (the widest image read)"),
+            ("close_px", self.close_px <= MAX_IMAGE_SIDE_PX,
+             f"at most {MAX_IMAGE_SIDE_PX} px (the widest image read)"),
+            ("min_area_px", 0 <= self.min_area_px <= MAX_IMAGE_PIXELS,
+             f"in [0, {MAX_IMAGE_PIXELS}] px (the largest image read)"),
+            ("min_views", 0 <= self.min_views <= MAX_MIN_VIEWS, f"in [0, {MAX_MIN_VIEWS}]"),
+            ("min_agreement", 0 <= self.min_agreement <= 1, "in [0, 1]"),
+            ("visible_mm", 0 < self.visible_mm <= d, f"in (0, {d:g}] mm"),
+            ("contradict_fraction", 0 <= self.contradict_fraction <= 1, "in [0, 1]"),
+            ("noise_k", 0 <= self.noise_k <= MAX_NOISE_K, f"in [0, {MAX_NOISE_K:g}]"),
+        )  # fmt: skip
+        for name, ok, expected in checks:
+            if not ok:
+                value = getattr(self, name)
+                raise ConfigError(f"change.{name}", f"must be {expected}, got {value}")
 
 
 def solve_scale(

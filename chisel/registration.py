@@ -22,8 +22,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from chisel.core.config import check_fields
-from chisel.core.errors import InvalidInputError
+from chisel.core.errors import ConfigError, InvalidInputError
 from chisel.core.geometry import rotation_angle_deg, transform_points
+from chisel.io.limits import MAX_VOXEL_SIZE_MM, MIN_VOXEL_SIZE_MM
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -35,6 +36,20 @@ def _o3d() -> ModuleType:
     import open3d  # noqa: PLC0415
 
     return open3d
+
+
+MAX_DISTANCE_MM = 1e3
+"""Largest distance a registration setting may name, mm: a metre is past any endoscopic
+scene (a sinus is ~50 mm across), so a larger value is a unit slip (um for mm), not a
+setting."""
+MAX_ICP_ITER = 10_000
+"""Most ICP iterations per pass: each one queries every point's nearest neighbour, and ICP
+has converged (or diverged) long before (the default is 10, Open3D's own 30)."""
+MAX_RANSAC_ITER = 10_000_000
+"""Most RANSAC iterations: 200x the default, minutes of sampling without an early stop;
+Open3D takes a C ``int`` and died allocating for -1."""
+MAX_SEED = 2**31 - 1
+"""Largest seed: Open3D's random generator takes a signed 32-bit C ``int``."""
 
 
 @dataclass(frozen=True)
@@ -80,26 +95,32 @@ class RegistrationConfig:
     """Seed of Open3D's random generator (RANSAC sampling): same seed, same result."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "registration")
-        if self.voxel_mm <= 0:
-            raise InvalidInputError("voxel_mm", f"must be > 0, got {self.voxel_mm}")
-        if not self.icp_max_dist_mm or min(self.icp_max_dist_mm) <= 0:
-            raise InvalidInputError(
-                "icp_max_dist_mm", f"need positive distances, got {self.icp_max_dist_mm}"
-            )
-        if self.tracking_accuracy_mm <= 0 or self.tracking_accuracy_deg <= 0:
-            raise InvalidInputError(
-                "tracking_accuracy",
-                f"must be > 0, got {self.tracking_accuracy_mm} mm / {self.tracking_accuracy_deg} deg",
-            )
-        if not 0.0 < self.max_scale_change < 1.0:
-            raise InvalidInputError(
-                "max_scale_change", f"must be in (0, 1), got {self.max_scale_change}"
-            )
-        if self.tukey_k_mm <= 0 or self.fitness_dist_mm <= 0:
-            raise InvalidInputError("tukey_k_mm", "kernel width and fitness distance must be > 0")
-        if not 0.0 <= self.min_fitness <= 1.0:
-            raise InvalidInputError("min_fitness", f"must be in [0, 1], got {self.min_fitness}")
+        check_fields(self, "registration")  # kinds, NaN and infinity
+        d, dists = MAX_DISTANCE_MM, self.icp_max_dist_mm
+        checks = (
+            ("voxel_mm", MIN_VOXEL_SIZE_MM <= self.voxel_mm <= MAX_VOXEL_SIZE_MM,
+             f"in [{MIN_VOXEL_SIZE_MM:g}, {MAX_VOXEL_SIZE_MM:g}] mm"),
+            ("icp_max_dist_mm", bool(dists) and all(0 < x <= d for x in dists),
+             f"one or more distances in (0, {d:g}] mm"),
+            ("tukey_k_mm", 0 < self.tukey_k_mm <= d, f"in (0, {d:g}] mm"),
+            ("icp_max_iter", 1 <= self.icp_max_iter <= MAX_ICP_ITER, f"in [1, {MAX_ICP_ITER}]"),
+            ("fitness_dist_mm", 0 < self.fitness_dist_mm <= d, f"in (0, {d:g}] mm"),
+            ("min_fitness", 0 <= self.min_fitness <= 1, "in [0, 1]"),
+            ("max_correction_mm", 0 < self.max_correction_mm <= d, f"in (0, {d:g}] mm"),
+            ("max_correction_deg", 0 < self.max_correction_deg <= 180, "in (0, 180] deg"),
+            ("ransac_max_iter", 1 <= self.ransac_max_iter <= MAX_RANSAC_ITER,
+             f"in [1, {MAX_RANSAC_ITER}]"),
+            ("ransac_confidence", 0 < self.ransac_confidence <= 1, "in (0, 1]"),
+            ("pose_prior", 0 <= self.pose_prior <= 1, "in [0, 1]"),
+            ("tracking_accuracy_mm", 0 < self.tracking_accuracy_mm <= d, f"in (0, {d:g}] mm"),
+            ("tracking_accuracy_deg", 0 < self.tracking_accuracy_deg <= 180, "in (0, 180] deg"),
+            ("max_scale_change", 0 < self.max_scale_change < 1, "in (0, 1)"),
+            ("seed", 0 <= self.seed <= MAX_SEED, f"in [0, {MAX_SEED}]"),
+        )  # fmt: skip
+        for name, ok, expected in checks:
+            if not ok:
+                value = getattr(self, name)
+                raise ConfigError(f"registration.{name}", f"must be {expected}, got {value}")
 
 
 @dataclass

@@ -8,9 +8,13 @@ from typing import Literal
 
 from chisel.change import ChangeConfig
 from chisel.core.config import check_fields
-from chisel.core.errors import InvalidInputError
+from chisel.core.errors import ConfigError
+from chisel.io.limits import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX
 from chisel.registration import RegistrationConfig
 from chisel.shading import ShadingConfig
+
+MIN_POINTS = 100
+"""Fewest pixels per frame a registration samples (``max_points``, ``sequence_points``)."""
 
 
 @dataclass(frozen=True)
@@ -150,22 +154,23 @@ class UpdateConfig:
     "no update" instead of stopping the run."""
 
     def __post_init__(self) -> None:
-        check_fields(self)
-        if self.max_points < 100 or self.sequence_points < 100:
-            raise InvalidInputError("max_points", "use at least 100 points per frame")
-        if not 1 <= self.noisy_votes <= 255:
-            raise InvalidInputError("noisy_votes", f"must be in [1, 255], got {self.noisy_votes}")
-        if not self.noisy_layer_mm > 0:
-            raise InvalidInputError("noisy_layer_mm", f"must be > 0 mm, got {self.noisy_layer_mm}")
-        if not self.noisy_max_depth_mm > 0:
-            raise InvalidInputError(
-                "noisy_max_depth_mm", f"must be > 0 mm, got {self.noisy_max_depth_mm}"
-            )
-        if self.occluder_margin_px < 0:  # NaN and infinity: check_fields
-            raise InvalidInputError(
-                "occluder_margin_px", f"must be >= 0 pixels, got {self.occluder_margin_px}"
-            )
-        if self.rim_px < 0:
-            raise InvalidInputError("rim_px", f"must be >= 0 pixels, got {self.rim_px}")
-        if self.hand_eye_frames < 1:
-            raise InvalidInputError("hand_eye_frames", f"must be >= 1, got {self.hand_eye_frames}")
+        check_fields(self)  # kinds, NaN and infinity
+        px = MAX_IMAGE_SIDE_PX
+        checks = (
+            ("max_points", MIN_POINTS <= self.max_points <= MAX_IMAGE_PIXELS,
+             f"in [{MIN_POINTS}, {MAX_IMAGE_PIXELS}] points per frame"),
+            ("sequence_points", MIN_POINTS <= self.sequence_points <= MAX_IMAGE_PIXELS,
+             f"in [{MIN_POINTS}, {MAX_IMAGE_PIXELS}] points per frame"),
+            ("hand_eye_frames", self.hand_eye_frames >= 1, ">= 1"),
+            ("noisy_votes", 1 <= self.noisy_votes <= 255, "in [1, 255]"),  # a uint8 count
+            ("noisy_layer_mm", self.noisy_layer_mm > 0, "> 0 mm"),
+            ("noisy_max_depth_mm", self.noisy_max_depth_mm > 0, "> 0 mm"),
+            # Wider than any image is meaningless; OpenCV refuses (rim) or masks everything.
+            ("occluder_margin_px", 0 <= self.occluder_margin_px <= px,
+             f">= 0 pixels and at most {px} (the widest image read)"),
+            ("rim_px", 0 <= self.rim_px <= px,
+             f">= 0 pixels and at most {px} (the widest image read)"),
+        )  # fmt: skip
+        for name, ok, expected in checks:
+            if not ok:
+                raise ConfigError(name, f"must be {expected}, got {getattr(self, name)}")

@@ -67,6 +67,10 @@ def _name_path_pairs(items: list[str] | None, option: str) -> dict[str, Path]:
 def _run_step(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise InvalidInputError("--seed", f"must be >= 0, got {args.seed}")
+    try:  # the bounds' one home is SurfaceMetricConfig; checked before anything is read
+        cfg = SurfaceMetricConfig(n_samples=args.samples, seed=args.seed)
+    except InvalidInputError as exc:
+        raise InvalidInputError("--samples", exc.problem) from None
     missing = [
         opt
         for opt, val in (
@@ -89,7 +93,7 @@ def _run_step(args: argparse.Namespace) -> int:
         args.eval_sequence,
         RoiBox.parse(args.roi),
         step=args.step,
-        cfg=SurfaceMetricConfig(n_samples=args.samples, seed=args.seed),
+        cfg=cfg,
         change_mask_paths=_name_path_pairs(args.change_masks, "--change-masks") or None,
         change_sequence_path=args.change_sequence,
         start_surface_paths=_name_path_pairs(args.start_surfaces, "--start-surfaces") or None,
@@ -185,7 +189,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--step", type=int, help="surgical step (0 = preop)")
     p.add_argument("--out", type=Path, help="output step_metrics.json", action=Output)
     p.add_argument(
-        "--samples", type=int, default=50_000, help="surface samples per mesh in the box"
+        "--samples",
+        type=int,
+        default=50_000,
+        help="surface samples per mesh in the box (100 to 10^7: memory grows with it)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
     p.add_argument(

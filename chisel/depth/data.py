@@ -10,6 +10,7 @@ phantom seed so that no phantom is seen in both training and validation; phantom
 from __future__ import annotations
 
 import logging
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -18,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from chisel.core.config import show
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.io.manifest import named_path, read_json_manifest
 from chisel.io.sequence import Sequence
@@ -27,6 +29,9 @@ log = logging.getLogger(__name__)
 DATASET_INDEX = "dataset.json"
 RESERVED_EVAL_SEEDS = range(0, 100)
 """Phantom seeds of the evaluation set; the network must never train on them."""
+
+MAX_PHANTOM_SEED = 2**63 - 1
+"""Largest phantom seed: an int64, what numpy and torch hold a seed in."""
 
 _SEED_KEYS = ("phantom_seed", "seed")
 _PATH_KEYS = ("path", "sequence", "dir")
@@ -48,15 +53,26 @@ class SequenceRef:
         return f"seed:{self.seed}" if self.seed is not None else f"path:{self.path}"
 
 
+def phantom_seed(value: Any, key: str, where: str | Path) -> int:
+    """A phantom seed read from a JSON file: an integer in [0, ``MAX_PHANTOM_SEED``].
+
+    Only a JSON integer is one: ``1000.9`` was read as phantom 1000 (``int()`` truncates),
+    ``1e400`` (which JSON readers take for infinity) died of ``OverflowError``, and
+    ``true`` or ``"1000"`` are not numbers. Raises :class:`InvalidInputError` naming
+    ``where`` (the file and entry) and ``key``.
+    """
+    integer = isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
+    if integer and 0 <= int(value) <= MAX_PHANTOM_SEED:
+        return int(value)
+    raise InvalidInputError(
+        where, f"{key} must be an integer in [0, 2**63 - 1] (a JSON integer), got {show(value)}"
+    )
+
+
 def _seed_of(d: dict[str, Any], source: str) -> int | None:
     for key in _SEED_KEYS:
         if key in d and d[key] is not None:
-            try:
-                return int(d[key])
-            except (TypeError, ValueError):
-                raise InvalidInputError(
-                    source, f"{key} must be an integer, got {d[key]!r}"
-                ) from None
+            return phantom_seed(d[key], key, source)
     return None
 
 
@@ -109,7 +125,7 @@ def find_sequences(inputs: list[str | Path], allow_outside: bool = False) -> lis
         elif (p / DATASET_INDEX).is_file():
             refs += read_dataset_index(p / DATASET_INDEX, allow_outside)
         elif (p / "sequence.json").is_file():
-            refs.append(SequenceRef(p, _seed_of(Sequence(p).meta, str(p))))
+            refs.append(SequenceRef(p, _seed_of(Sequence(p).meta, f"{p / 'sequence.json'} meta")))
         else:
             raise InvalidInputError(
                 p,

@@ -47,7 +47,7 @@ import trimesh
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth.change_train import PriorSet
-from chisel.depth.data import DATASET_INDEX, SequenceRef, check_training_seeds
+from chisel.depth.data import DATASET_INDEX, SequenceRef, check_training_seeds, phantom_seed
 from chisel.io.manifest import named_path, read_json_manifest
 from chisel.io.meshfile import read_mesh_file
 from chisel.io.sequence import Sequence
@@ -100,7 +100,7 @@ def read_step_dataset(
                     where, "change-aware training needs path, phantom_seed and step per entry "
                     "(a dataset from python -m sim dataset)",
                 )  # fmt: skip
-            seed = _integer(e["phantom_seed"], "phantom_seed", where)
+            seed = phantom_seed(e["phantom_seed"], "phantom_seed", where)
             step = _integer(e["step"], "step", where)
             path = named_path(
                 index, e["path"], f"sequences[{i}]", allow_outside=allow_outside, kind="folder"
