@@ -26,7 +26,9 @@ Run your own depth estimator on a sequence and write its depth as a new sequence
                       folder (sequence.json, poses.txt, rgb/NNNNNN.png, mask/NNNNNN.png),
                       {output} an empty folder where it writes NNNNNN.npy per frame,
                       (H, W) float32 z-depth, NaN or <= 0 = invalid. Split like a shell
-                      line, no pipes (wrap in bash -c '...' for that).
+                      line and run without a shell; {input} and {output} must each be a
+                      whole argument. For pipes, pass the folders as a shell's arguments:
+                      bash -c 'python est.py "$1" "$2"' _ {input} {output}
 
 --metric: the depth is millimetres; without it the depth is up to scale (the updater
 solves the scale per frame) and is written rescaled to a median of 10.
@@ -46,7 +48,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     kind = p.add_mutually_exclusive_group(required=True)
     kind.add_argument("--torchscript", type=Path, help="exported TorchScript depth model")
-    kind.add_argument("--command", help="command line with {input} and {output}")
+    # dest: "command" is the subcommand's name (chisel external-depth: error: ...)
+    kind.add_argument(
+        "--command",
+        dest="estimator_command",
+        metavar="LINE",
+        help="command line with {input} and {output}",
+    )
     p.add_argument("--metric", action="store_true", help="the depth is in millimetres")
     p.add_argument(
         "--timeout-s", type=finite_float, default=3600.0, help="stop a command after this long (s)"
@@ -65,7 +73,7 @@ def _cmd_external_depth(args: argparse.Namespace) -> int:
         seq,
         args.out,
         torchscript=args.torchscript,
-        command=args.command,
+        command=args.estimator_command,
         metric=args.metric,
         timeout_s=args.timeout_s,
     )

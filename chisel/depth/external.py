@@ -6,8 +6,9 @@ estimator's depth) that ``chisel update --depth-source sequence:DIR`` reads
 
 - an exported **TorchScript** module with :class:`chisel.depth.network.DepthPredictor`'s
   contract: ``(B, H, W, 3)`` uint8 RGB in, ``(B, H, W)`` float32 depth out;
-- a **command**, one line split like a shell's (no pipes: wrap in ``bash -c '...'`` for
-  that) with ``{input}`` and ``{output}`` in it: ``{input}`` is the sequence folder
+- a **command**, one line split like a shell's (no pipes: for a shell, pass the folders as
+  its arguments, ``bash -c 'est.py "$1" "$2"' _ {input} {output}``) with ``{input}`` and
+  ``{output}`` in it, each a whole argument: ``{input}`` is the sequence folder
   (``sequence.json``, ``poses.txt``, ``rgb/NNNNNN.png``, ``mask/NNNNNN.png``), ``{output}``
   an empty folder in which it writes ``NNNNNN.npy`` per frame, (H, W) float32 z-depth,
   NaN or <= 0 = invalid.
@@ -63,7 +64,10 @@ class _ModuleDepth:
     def __call__(self, frame: Frame) -> np.ndarray:
         try:
             d = self.source(frame)
-        except RuntimeError as exc:
+        except InvalidInputError:
+            raise  # already names the file (an output that breaks the contract, say)
+        except (RuntimeError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            # TorchScript raises RuntimeError (torch.jit.Error); an eager module anything.
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise InvalidInputError(
                 self.path, f"the model failed on frame {frame.index}: {first}"
@@ -102,17 +106,44 @@ class _FolderDepth:
         return d.astype(np.float32)
 
 
+PLACEHOLDERS = ("{input}", "{output}")
+"""What a command names the two folders by; each must be one whole argument of its own."""
+
+
 def command_line(command: str, input_dir: Path, output_dir: Path) -> list[str]:
-    """The command's argv: ``{input}`` and ``{output}`` replaced by the two folders."""
-    if "{input}" not in command or "{output}" not in command:
-        raise InvalidInputError(
-            "command", f"must contain {{input}} and {{output}}, got {command!r}"
-        )
+    """The command's argv: each ``{input}`` and ``{output}`` argument replaced by its folder.
+
+    Each placeholder must be a whole argument (``est.py {input} {output}``), so that a
+    folder's name reaches the estimator as one argument whatever it holds: spaces, quotes
+    or ``$(...)`` are never read by a shell. A placeholder inside a longer argument
+    (``bash -c 'est.py {input} {output}'``, ``--in={input}``) is refused: pasted into a
+    shell's ``-c`` script the folder name would be run as shell code. Through a shell,
+    pass the folders as its positional parameters:
+    ``bash -c 'python est.py "$1" "$2"' _ {input} {output}``.
+    """
+    source = "--command"  # the workflow's depth.extra.<name>.command arrives as this option
     try:
         argv = shlex.split(command)
     except ValueError as exc:
-        raise InvalidInputError("command", f"cannot split {command!r}: {exc}") from None
-    return [a.replace("{input}", str(input_dir)).replace("{output}", str(output_dir)) for a in argv]
+        raise InvalidInputError(source, f"cannot split {command!r}: {exc}") from None
+    embedded = [a for a in argv if a not in PLACEHOLDERS and any(p in a for p in PLACEHOLDERS)]
+    if embedded:
+        raise InvalidInputError(
+            source,
+            f"{{input}} and {{output}} must each be a whole argument, got {embedded[0]!r} in "
+            f"{command!r} (config depth.extra.<name>.command): a folder name pasted into a "
+            "longer argument would be shell code under bash -c; pass the folders as the "
+            """shell's arguments instead: bash -c 'python est.py "$1" "$2"' _ {input} {output}""",
+        )
+    for placeholder in PLACEHOLDERS:
+        if placeholder not in argv:
+            raise InvalidInputError(
+                source,
+                f"must contain {{input}} and {{output}}, each as an argument of its own "
+                f"(no {placeholder} argument in {command!r})",
+            )
+    folders = {"{input}": str(input_dir), "{output}": str(output_dir)}
+    return [folders.get(a, a) for a in argv]
 
 
 def run_command(

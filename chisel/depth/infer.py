@@ -43,10 +43,12 @@ class NetworkDepthSource:
         module: torch.nn.Module | torch.jit.ScriptModule,
         device: str = "cpu",
         description: str = "",
+        path: str | Path | None = None,
     ) -> None:
         self.device = resolve_device(device)
         self.module = module.to(self.device).eval()
         self.description = description
+        self.path = path  # the model file, named when its output breaks the contract
 
     def predict_batch(self, rgb: np.ndarray) -> np.ndarray:
         """rgb : (B, H, W, 3) uint8 -> (B, H, W) float32 relative depth (> 0)."""
@@ -57,7 +59,28 @@ class NetworkDepthSource:
             )
         with torch.inference_mode():
             out = self.module(torch.from_numpy(np.ascontiguousarray(arr)).to(self.device))
+        self._check_output(out, arr.shape)
         return out.float().cpu().numpy()
+
+    def _check_output(self, out: object, shape: tuple[int, ...]) -> None:
+        """Refuse, naming the model file, an output that is not a (B, H, W) real tensor
+        for ``shape`` = (B, H, W, 3) input (a tuple, a number, another batch or size)."""
+        want = tuple(shape[:3])
+        source = self.path if self.path is not None else (self.description or "depth model")
+        if not isinstance(out, torch.Tensor):
+            raise InvalidInputError(
+                source,
+                f"the depth model returned an object of type {type(out).__name__}, not a "
+                f"tensor; expected a (B, H, W) float depth tensor of shape {want} for "
+                f"(B, H, W, 3) input of shape {tuple(shape)}",
+            )
+        if out.is_complex() or out.dtype == torch.bool or tuple(out.shape) != want:
+            raise InvalidInputError(
+                source,
+                f"the depth model returned a {out.dtype} tensor of shape {tuple(out.shape)}; "
+                f"expected (B, H, W) float depth of shape {want} for (B, H, W, 3) input of "
+                f"shape {tuple(shape)}",
+            )
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
         """rgb : (H, W, 3) uint8 -> (H, W) float32 relative depth (> 0)."""
@@ -127,7 +150,7 @@ def load_depth_source(
                 f"{len(bad)} weight tensor(s) hold NaN/inf, e.g. {bad[:3]}: the network "
                 "would predict no valid depth",
             )
-        return NetworkDepthSource(module, device, f"torchscript {path}")
+        return NetworkDepthSource(module, device, f"torchscript {path}", path)
     predictor, _ = load_predictor(path)
     if script:
         # The scripted module gives the same numbers and ran ~1.7x faster than eager on
@@ -135,8 +158,8 @@ def load_depth_source(
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", "`torch.jit", DeprecationWarning)
             scripted: torch.nn.Module = torch.jit.script(predictor)
-        return NetworkDepthSource(scripted, device, f"checkpoint {path} (scripted)")
-    return NetworkDepthSource(predictor, device, f"checkpoint {path}")
+        return NetworkDepthSource(scripted, device, f"checkpoint {path} (scripted)", path)
+    return NetworkDepthSource(predictor, device, f"checkpoint {path}", path)
 
 
 def predict_sequence(

@@ -579,8 +579,9 @@ def read_sweep_csv(path: str | Path) -> SweepTable:
     rows = []
     for line, r in raw:
         try:
+            value = float(r["param_value"])
             row = {
-                "param_value": float(r["param_value"]),
+                "param_value": value,
                 "step": int(r["step"]),
                 "method": r["method"],
                 **{
@@ -590,7 +591,7 @@ def read_sweep_csv(path: str | Path) -> SweepTable:
             }
         except ValueError as exc:
             raise InvalidInputError(path, f"line {line}: {exc}"[:300]) from None
-        if not math.isfinite(row["param_value"]):
+        if not math.isfinite(value):
             raise InvalidInputError(
                 path, f"line {line}: param_value must be a finite number, got {r['param_value']}"
             )

@@ -40,9 +40,9 @@ rule finetune_change_aware:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel depth finetune --kind change-aware --checkpoint {input.base} "
-        "--sequence $(dirname {input.index})/preop {params.prior_flag} {input.prior} --steps {params.steps} "
-        "--seed {params.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
+        "python -m chisel depth finetune --kind change-aware --checkpoint {input.base:q} "
+        "--sequence \"$(dirname {input.index:q})/preop\" {params.prior_flag} {input.prior:q} --steps {params.steps} "
+        "--seed {params.seed} --threads {threads} --out {output.ckpt:q} > {log:q} 2>&1"
 
 
 rule update_change_aware:
@@ -64,8 +64,8 @@ rule update_change_aware:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel update --model {input.model} "
-        "--sequence $(dirname {input.index})/step_{wildcards.step} --config {input.config} "
+        "python -m chisel update --model {input.model:q} "
+        "--sequence \"$(dirname {input.index:q})/step_{wildcards.step}\" --config {input.config:q} "
         "--allow-unused-step "
-        "--depth-source change-aware:{input.ckpt} "
-        "--out {output.model} --report {output.report} --masks {output.masks} > {log} 2>&1"
+        "--depth-source change-aware:{input.ckpt:q} "
+        "--out {output.model:q} --report {output.report:q} --masks {output.masks:q} > {log:q} 2>&1"

@@ -151,8 +151,8 @@ def update_inputs(wc):
 def update_options(wc, input):
     depth, registration = METHOD_SPECS[wc.method]
     # A step whose frames all fail registration is scored as "no update", not a crash.
-    opts = [f"--config {input.config}", "--allow-unused-step"]
-    opts.append("--depth-source gt" if depth == "gt" else f"--depth-source sequence:{input.pred}")
+    opts = ["--config", str(input.config), "--allow-unused-step", "--depth-source"]
+    opts.append("gt" if depth == "gt" else f"sequence:{input.pred}")
     if depth == "gt":
         # The shading's pose correction is a cue for estimates: exact depth registers to the
         # model by itself, and the correction cost its row 3 % (docs/results.md, fortieth).
@@ -161,10 +161,11 @@ def update_options(wc, input):
         opts.append("--no-register")
     kind, _, value = wc.variant.partition("-")
     if kind == "seqlen":
-        opts.append(f"--max-frames {value}")
+        opts += ["--max-frames", value]
     if kind == "depthnoise":
-        opts.append(f"--depth-noise-mm {value} --depth-noise-seed {wc.seed}")
-    return " ".join(opts)
+        opts += ["--depth-noise-mm", value, "--depth-noise-seed", str(wc.seed)]
+    # Every value is quoted for the shell, as in extra_depth_options and dataset_options.
+    return " ".join(shlex.quote(o) for o in opts)
 
 
 def method_mesh(wc, method):

@@ -13,8 +13,8 @@ rule dataset_seed:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m sim dataset --seeds {wildcards.seed} --out {params.out} --no-index "
-        "{params.opts} --quiet > {log} 2>&1"
+        "python -m sim dataset --seeds {wildcards.seed} --out {params.out:q} --no-index "
+        "{params.opts} --quiet > {log:q} 2>&1"
 
 
 rule dataset:
@@ -34,5 +34,5 @@ rule dataset:
     conda:
         ENV
     shell:
-        "python -m sim dataset --seeds '{params.seeds}' --out {params.out} --resume "
-        "{params.opts} --quiet > {log} 2>&1"
+        "python -m sim dataset --seeds {params.seeds:q} --out {params.out:q} --resume "
+        "{params.opts} --quiet > {log:q} 2>&1"

@@ -43,8 +43,8 @@ rule seed_table:
     conda:
         ENV
     shell:
-        "python -m chisel evaluate table --inputs {input} --experiment {params.experiment} "
-        "--out-dir $(dirname {output.metrics}) > {log} 2>&1"
+        "python -m chisel evaluate table --inputs {input:q} --experiment {params.experiment:q} "
+        "--out-dir \"$(dirname {output.metrics:q})\" > {log:q} 2>&1"
 
 
 rule experiment_metrics:
@@ -59,7 +59,7 @@ rule experiment_metrics:
     conda:
         ENV
     shell:
-        "cp {input} {output}.tmp && mv {output}.tmp {output} 2> {log}"
+        "cp {input:q} {output:q}.tmp && mv {output:q}.tmp {output:q} 2> {log:q}"
 
 
 rule seeds_table:
@@ -76,8 +76,8 @@ rule seeds_table:
     conda:
         ENV
     shell:
-        "python -m chisel evaluate seeds --inputs {input} --labels {params.labels} "
-        "--out-dir $(dirname {output}) > {log} 2>&1"
+        "python -m chisel evaluate seeds --inputs {input:q} --labels {params.labels:q} "
+        "--out-dir \"$(dirname {output:q})\" > {log:q} 2>&1"
 
 
 rule sweep:
@@ -92,16 +92,16 @@ rule sweep:
     wildcard_constraints:
         kind="seqlen|posenoise|depthnoise",
     params:
-        runs=lambda wc, input: " ".join(
+        runs=lambda wc, input: [
             f"{v}={p}" for v, p in zip(SWEEPS.get(wc.kind, []), input, strict=True)
-        ),
+        ],
         param=lambda wc: SWEEP_PARAMS[wc.kind],
     threads: 1
     conda:
         ENV
     shell:
-        "python -m chisel evaluate sweep --param {params.param} --run {params.runs} "
-        "--out {output.csv} > {log} 2>&1"
+        "python -m chisel evaluate sweep --param {params.param} --run {params.runs:q} "
+        "--out {output.csv:q} > {log:q} 2>&1"
 
 
 rule panels:
@@ -139,19 +139,24 @@ rule report:
     log:
         f"{RESULTS}/logs/report.log",
     params:
-        sweeps=lambda wc: " ".join(f"{k}={v}" for k, v in report_sweeps(wc).items()),
+        # "--sweep K=CSV ..." quoted for the shell, or nothing without sweeps.
+        sweeps=lambda wc: " ".join(
+            shlex.quote(o)
+            for o in (["--sweep", *(f"{k}={v}" for k, v in report_sweeps(wc).items())]
+                      if report_sweeps(wc) else [])
+        ),
         title=f"Endoscopic Chisel: experiment {config['experiment']}",
     threads: 1
     conda:
         ENV
     shell:
         "ROI=$(python -c \"import json,sys; b=json.load(open(sys.argv[1]))['roi_box_mm']; "
-        "print(','.join(str(v) for c in b for v in c))\" {input.manifest}) && "
-        "python -m chisel report --metrics {input.metrics} --panels {input.panels} "
-        "--preop-mesh {input.preop} --updated-mesh {input.updated} --roi=$ROI "
-        "--ct-slices {input.ct_slices} "
-        "$( [ -n '{params.sweeps}' ] && echo --sweep {params.sweeps} ) "
-        "--title '{params.title}' --out {output.html} > {log} 2>&1"
+        "print(','.join(str(v) for c in b for v in c))\" {input.manifest:q}) && "
+        "python -m chisel report --metrics {input.metrics:q} --panels {input.panels:q} "
+        "--preop-mesh {input.preop:q} --updated-mesh {input.updated:q} --roi=$ROI "
+        "--ct-slices {input.ct_slices:q} "
+        "{params.sweeps} "
+        "--title {params.title:q} --out {output.html:q} > {log:q} 2>&1"
 
 
 # Experiment targets (see README): the paper's table over seeds, and the three sweeps.

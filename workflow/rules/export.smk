@@ -33,8 +33,8 @@ rule export_ct:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel export-ct --model {input.model} --preop-model {input.preop} "
-        "--ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz --out {output.ct} > {log} 2>&1"
+        "python -m chisel export-ct --model {input.model:q} --preop-model {input.preop:q} "
+        "--ct \"$(dirname {input.manifest:q})/ct/step_00_hu.nii.gz\" --out {output.ct:q} > {log:q} 2>&1"
 
 
 rule ct_dice:

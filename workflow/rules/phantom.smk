@@ -21,6 +21,6 @@ rule phantom:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m phantoms generate --seed {wildcards.seed} --procedure {params.procedure} "
+        "python -m phantoms generate --seed {wildcards.seed} --procedure {params.procedure:q} "
         "--bites {params.bites} "
-        "{params.opts} --out $(dirname {output.manifest}) > {log} 2>&1"
+        "{params.opts} --out \"$(dirname {output.manifest:q})\" > {log:q} 2>&1"

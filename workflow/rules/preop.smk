@@ -12,8 +12,8 @@ rule ct_surface:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel ct-surface --ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz "
-        "--out {output.mesh} > {log} 2>&1"
+        "python -m chisel ct-surface --ct \"$(dirname {input.manifest:q})/ct/step_00_hu.nii.gz\" "
+        "--out {output.mesh:q} > {log:q} 2>&1"
 
 
 rule preop_model:
@@ -36,9 +36,9 @@ rule preop_model:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel build --from-ct $(dirname {input.manifest})/ct/step_00_hu.nii.gz "
-        "--sequence $(dirname {input.index})/preop {params.opts} --no-progress "
-        "--out {output.model} > {log} 2>&1"
+        "python -m chisel build --from-ct \"$(dirname {input.manifest:q})/ct/step_00_hu.nii.gz\" "
+        "--sequence \"$(dirname {input.index:q})/preop\" {params.opts} --no-progress "
+        "--out {output.model:q} > {log:q} 2>&1"
 
 
 rule preop_model_sweep:
@@ -58,8 +58,8 @@ rule preop_model_sweep:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel build --surface {input.surface} --sequence $(dirname {input.index})/preop "
-        "{params.opts} --no-progress --out {output.model} > {log} 2>&1"
+        "python -m chisel build --surface {input.surface:q} --sequence \"$(dirname {input.index:q})/preop\" "
+        "{params.opts} --no-progress --out {output.model:q} > {log:q} 2>&1"
 
 
 rule preop_ct_depth:
@@ -75,8 +75,8 @@ rule preop_ct_depth:
     conda:
         ENV
     shell:
-        "python -m chisel render-depth --mesh {input.surface} --sequence $(dirname {input.index})/preop "
-        "--out {output.seq} > {log} 2>&1"
+        "python -m chisel render-depth --mesh {input.surface:q} --sequence \"$(dirname {input.index:q})/preop\" "
+        "--out {output.seq:q} > {log:q} 2>&1"
 
 
 rule finetune:
@@ -98,8 +98,8 @@ rule finetune:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel depth finetune --checkpoint {input.base} --sequence {input.seq} --epochs {params.epochs} "
-        "--seed {params.seed} --threads {threads} --out {output.ckpt} > {log} 2>&1"
+        "python -m chisel depth finetune --checkpoint {input.base:q} --sequence {input.seq:q} --epochs {params.epochs} "
+        "--seed {params.seed} --threads {threads} --out {output.ckpt:q} > {log:q} 2>&1"
 
 
 rule predict_depth:
@@ -116,5 +116,5 @@ rule predict_depth:
     conda:
         ENV
     shell:
-        "python -m chisel depth predict --checkpoint {params.ckpt} --sequence $(dirname {input.index})/step_{wildcards.step} "
-        "--out {output.seq} > {log} 2>&1"
+        "python -m chisel depth predict --checkpoint {params.ckpt:q} --sequence \"$(dirname {input.index:q})/step_{wildcards.step}\" "
+        "--out {output.seq:q} > {log:q} 2>&1"

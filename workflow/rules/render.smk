@@ -34,8 +34,8 @@ rule render:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m sim render --phantom $(dirname {input.manifest}) --out $(dirname {output.index}) "
-        "--seed {wildcards.seed} --config {input.sim_config} {params.opts} > {log} 2>&1"
+        "python -m sim render --phantom \"$(dirname {input.manifest:q})\" --out \"$(dirname {output.index:q})\" "
+        "--seed {wildcards.seed} --config {input.sim_config:q} {params.opts} > {log:q} 2>&1"
 
 
 rule retrack:
@@ -56,7 +56,7 @@ rule retrack:
     conda:
         ENV
     shell:
-        "python -m sim retrack --sequence $(dirname {input.index})/step_{wildcards.step} "
+        "python -m sim retrack --sequence \"$(dirname {input.index:q})/step_{wildcards.step}\" "
         "--handeye-mm {wildcards.noise} --handeye-deg {wildcards.noise} "
         "--jitter-mm {params.jitter} --jitter-deg {params.jitter} "
-        "--seed {wildcards.seed} --out {output.seq} > {log} 2>&1"
+        "--seed {wildcards.seed} --out {output.seq:q} > {log:q} 2>&1"

@@ -31,8 +31,8 @@ rule update:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel update --model {input.model} --sequence {params.seq} {params.opts} "
-        "--out {output.model} --report {output.report} --masks {output.masks} > {log} 2>&1"
+        "python -m chisel update --model {input.model:q} --sequence {params.seq:q} {params.opts} "
+        "--out {output.model:q} --report {output.report:q} --masks {output.masks:q} > {log:q} 2>&1"
 
 
 rule mesh:
@@ -46,7 +46,7 @@ rule mesh:
     conda:
         ENV
     shell:
-        "python -m chisel mesh --model {input.model} --out {output.mesh} > {log} 2>&1"
+        "python -m chisel mesh --model {input.model:q} --out {output.mesh:q} > {log:q} 2>&1"
 
 
 rule external_depth:
@@ -68,5 +68,5 @@ rule external_depth:
     resources:
         mem_mb=MEM_MB,
     shell:
-        "python -m chisel external-depth --sequence {params.seq} --out {output} {params.opts} "
-        "> {log} 2>&1"
+        "python -m chisel external-depth --sequence {params.seq:q} --out {output:q} {params.opts} "
+        "> {log:q} 2>&1"
