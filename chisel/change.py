@@ -21,8 +21,8 @@ import cv2
 import numba
 import numpy as np
 
-from chisel.core.config import check_fields
-from chisel.core.errors import ConfigError, EmptyResultError, InvalidInputError
+from chisel.core.config import check_fields, check_ranges
+from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
 from chisel.fusion import distort
 from chisel.io.limits import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX
@@ -99,10 +99,7 @@ class ChangeConfig:
             ("contradict_fraction", 0 <= self.contradict_fraction <= 1, "in [0, 1]"),
             ("noise_k", 0 <= self.noise_k <= MAX_NOISE_K, f"in [0, {MAX_NOISE_K:g}]"),
         )  # fmt: skip
-        for name, ok, expected in checks:
-            if not ok:
-                value = getattr(self, name)
-                raise ConfigError(f"change.{name}", f"must be {expected}, got {value}")
+        check_ranges(self, "change", checks)
 
 
 def solve_scale(

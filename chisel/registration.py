@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from chisel.core.config import check_fields
-from chisel.core.errors import ConfigError, InvalidInputError
+from chisel.core.config import check_fields, check_ranges
+from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import rotation_angle_deg, transform_points
 from chisel.io.limits import MAX_VOXEL_SIZE_MM, MIN_VOXEL_SIZE_MM
 
@@ -117,10 +117,7 @@ class RegistrationConfig:
             ("max_scale_change", 0 < self.max_scale_change < 1, "in (0, 1)"),
             ("seed", 0 <= self.seed <= MAX_SEED, f"in [0, {MAX_SEED}]"),
         )  # fmt: skip
-        for name, ok, expected in checks:
-            if not ok:
-                value = getattr(self, name)
-                raise ConfigError(f"registration.{name}", f"must be {expected}, got {value}")
+        check_ranges(self, "registration", checks)
 
 
 @dataclass

@@ -7,8 +7,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from chisel.change import ChangeConfig
-from chisel.core.config import check_fields
-from chisel.core.errors import ConfigError
+from chisel.core.config import check_fields, check_ranges
 from chisel.io.limits import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX
 from chisel.registration import RegistrationConfig
 from chisel.shading import ShadingConfig
@@ -171,6 +170,4 @@ class UpdateConfig:
             ("rim_px", 0 <= self.rim_px <= px,
              f">= 0 pixels and at most {px} (the widest image read)"),
         )  # fmt: skip
-        for name, ok, expected in checks:
-            if not ok:
-                raise ConfigError(name, f"must be {expected}, got {getattr(self, name)}")
+        check_ranges(self, "", checks)

@@ -31,6 +31,7 @@ import numbers
 import textwrap
 import types
 import typing
+from collections.abc import Iterable
 from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -157,6 +158,16 @@ def check_value(value: Any, tp: Any, key: str, error: type[ConfigError] = Config
 def field_types(cls: type) -> dict[str, Any]:
     """The resolved annotations of a dataclass's fields."""
     return typing.get_type_hints(cls)
+
+
+def check_ranges(obj: Any, section: str, checks: Iterable[tuple[str, bool, str]]) -> None:
+    """Raise :class:`ConfigError` for the first ``(field, ok, expected)`` of ``checks`` that
+    is not ok, naming the dotted key (``section.field``; ``section`` may be "") and the
+    value ``obj`` holds: "must be <expected>, got <value>"."""
+    for name, ok, expected in checks:
+        if not ok:
+            key = f"{section}.{name}" if section else name
+            raise ConfigError(key, f"must be {expected}, got {getattr(obj, name)}")
 
 
 def check_fields(obj: Any, section: str = "", error: type[ConfigError] = ConfigError) -> None:
