@@ -151,6 +151,15 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def atomic_write_texts(texts: Mapping[Path, str]) -> None:
+    """Write each text to its path, all moved into place together (:func:`atomic_paths`):
+    files that belong together (a table's JSON, CSV and Markdown) are all new or, after a
+    failure, all as they were."""
+    with atomic_paths(*texts) as temps:
+        for tmp, text in zip(temps, texts.values(), strict=True):
+            tmp.write_text(text, encoding="utf-8")
+
+
 def _umask() -> int:
     umask = os.umask(0)
     os.umask(umask)

@@ -36,7 +36,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from chisel.core.atomic import atomic_path, atomic_write_text
 from chisel.core.config import config_from_dict
 from chisel.core.errors import InvalidInputError
 from chisel.depth.checkpoint import (
@@ -48,7 +47,7 @@ from chisel.depth.checkpoint import (
     fill_weights,
     nonfinite_tensors,
     read_checkpoint,
-    sidecar_path,
+    write_checkpoint_files,
 )
 from chisel.depth.network import check_rgb_normalisation, conv_bn_relu
 
@@ -289,8 +288,6 @@ def save_change_checkpoint(
         "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
         "info": info,
     }
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
     sidecar = {
         **head,
         "weights": path.name,
@@ -298,7 +295,7 @@ def save_change_checkpoint(
         "config": net.config.to_dict(),
         "info": info,
     }
-    atomic_write_text(sidecar_path(path), json.dumps(sidecar, indent=2) + "\n")
+    write_checkpoint_files(path, payload, sidecar)
     return path
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from chisel.core.atomic import atomic_path, atomic_write_text
+from chisel.core.atomic import atomic_paths
 from chisel.core.errors import FormatVersionError, InvalidInputError
 from chisel.depth.network import DepthNet, DepthNetConfig
 
@@ -93,8 +93,6 @@ def save_checkpoint(path: str | Path, net: DepthNet, info: dict[str, Any] | None
         "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
         "info": info,
     }
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
     sidecar = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -103,8 +101,16 @@ def save_checkpoint(path: str | Path, net: DepthNet, info: dict[str, Any] | None
         "config": net.config.to_dict(),
         "info": info,
     }
-    atomic_write_text(sidecar_path(path), json.dumps(sidecar, indent=2) + "\n")
+    write_checkpoint_files(path, payload, sidecar)
     return path
+
+
+def write_checkpoint_files(path: Path, payload: dict[str, Any], sidecar: dict[str, Any]) -> None:
+    """The weights at ``path`` and their ``.json`` sidecar, moved into place together: both
+    new or, after a failure (a full disk while the sidecar is written), both as they were."""
+    with atomic_paths(path, sidecar_path(path)) as (tmp, tmp_json):
+        torch.save(payload, tmp)
+        tmp_json.write_text(json.dumps(sidecar, indent=2) + "\n")
 
 
 def _describe_mismatch(

@@ -15,7 +15,7 @@ from typing import Any
 import jsonschema
 import numpy as np
 
-from chisel.core.atomic import atomic_write_text
+from chisel.core.atomic import atomic_write_text, atomic_write_texts
 from chisel.core.errors import InvalidInputError
 from chisel.io.limits import read_text_limited
 from chisel.io.manifest import read_json_manifest
@@ -314,16 +314,13 @@ def metrics_to_markdown(metrics: Mapping[str, Any]) -> str:
 
 
 def write_table(out_dir: str | Path, metrics: Mapping[str, Any]) -> dict[str, Path]:
-    """Write ``metrics.json``, ``metrics.csv`` and ``metrics.md`` into ``out_dir`` (atomically each).
-
-    Returns the paths by kind (``json``, ``csv``, ``md``).
-    """
+    """Write ``metrics.json``, ``.csv`` and ``.md`` into ``out_dir``, all three or none
+    (atomically, together); returns the paths by kind (``json``, ``csv``, ``md``)."""
     validate_metrics(metrics, "metrics")
     out = Path(out_dir)
     paths = {"json": out / "metrics.json", "csv": out / "metrics.csv", "md": out / "metrics.md"}
-    atomic_write_text(paths["json"], _json_text(metrics))
-    atomic_write_text(paths["csv"], metrics_to_csv(metrics))
-    atomic_write_text(paths["md"], metrics_to_markdown(metrics))
+    texts = (_json_text(metrics), metrics_to_csv(metrics), metrics_to_markdown(metrics))
+    atomic_write_texts(dict(zip(paths.values(), texts, strict=True)))
     return paths
 
 
@@ -433,7 +430,7 @@ def seeds_to_markdown(agg: Mapping[str, Any]) -> str:
 
 
 def write_seed_table(out_dir: str | Path, agg: Mapping[str, Any]) -> dict[str, Path]:
-    """Write ``metrics_seeds.json``/``.csv``/``.md`` into ``out_dir`` (atomically each)."""
+    """Write ``metrics_seeds.json``/``.csv``/``.md`` into ``out_dir`` (atomically, together)."""
     if agg.get("format") != SEED_METRICS_FORMAT:
         raise InvalidInputError(
             "agg", f"expected format {SEED_METRICS_FORMAT!r}, got {agg.get('format')!r}"
@@ -444,9 +441,8 @@ def write_seed_table(out_dir: str | Path, agg: Mapping[str, Any]) -> dict[str, P
         "csv": out / "metrics_seeds.csv",
         "md": out / "metrics_seeds.md",
     }
-    atomic_write_text(paths["json"], _json_text(agg))
-    atomic_write_text(paths["csv"], seeds_to_csv(agg))
-    atomic_write_text(paths["md"], seeds_to_markdown(agg))
+    texts = (_json_text(agg), seeds_to_csv(agg), seeds_to_markdown(agg))
+    atomic_write_texts(dict(zip(paths.values(), texts, strict=True)))  # all three or none
     return paths
 
 
