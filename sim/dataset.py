@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from chisel.core.atomic import atomic_write_text
+from chisel.core.atomic import atomic_write_texts
 from chisel.core.config import seed_list
 from chisel.core.errors import InvalidInputError
 from chisel.core.mitsuba_variant import load_mitsuba
@@ -50,6 +50,9 @@ DATASET_FORMAT = "endoscopic-chisel/dataset"
 DATASET_VERSION = 1
 CARD_FORMAT = "endoscopic-chisel/dataset-card"
 CARD_VERSION = 1
+INDEX_FILES = ("dataset.json", "dataset_card.json")
+"""The index and its card: written together, last, and removed before a rendered seed is
+replaced."""
 SPLIT_FRACTIONS = {"train": 0.8, "val": 0.1, "test": 0.1}
 """Split by phantom seed: a seed's sequences never straddle two parts."""
 
@@ -455,6 +458,12 @@ def build_dataset(
             header = finished[seed]
             if header is None:
                 queue.wait(seed)
+                if render_dir.exists():
+                    # This seed's earlier render is about to be replaced: an index left
+                    # from the earlier run would then describe renders that are gone, and
+                    # a failure later in this run would leave it so. It is rewritten last.
+                    for index in INDEX_FILES:
+                        (out / index).unlink(missing_ok=True)
                 header = render_phantom(
                     queue.folder(seed),
                     render_dir,
@@ -493,6 +502,6 @@ def build_dataset(
     if not write_index:
         return dataset
     card = dataset_card(json.loads(json.dumps(dataset)), command, renders)
-    atomic_write_text(out / "dataset_card.json", json.dumps(card, indent=2) + "\n")
-    atomic_write_text(out / "dataset.json", json.dumps(dataset, indent=2) + "\n")
+    texts = (json.dumps(dataset, indent=2) + "\n", json.dumps(card, indent=2) + "\n")
+    atomic_write_texts({out / name: text for name, text in zip(INDEX_FILES, texts, strict=True)})
     return dataset

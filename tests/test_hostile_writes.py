@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -22,6 +23,9 @@ from chisel.eval.tables import (
     write_seed_table,
     write_table,
 )
+from sim.config import SimConfig, replace_in
+from sim.dataset import build_dataset
+from sim.errors import SimError
 
 
 def _disk_full(*_args: object, **_kwargs: object) -> str:
@@ -89,3 +93,32 @@ def test_a_failed_markdown_leaves_the_whole_table_as_it_was(
         write_seed_table(tmp_path, aggregate_seeds([_metrics(0.2)], ["seed 0"]))
     assert _snapshot(*paths.values(), *seed_paths.values()) == before
     assert len(list(tmp_path.iterdir())) == 6  # no temporary file left behind
+
+
+def test_a_failed_rerun_of_a_dataset_leaves_no_index_of_renders_it_replaced(
+    tmp_path: Path, tiny_sim_config: SimConfig
+) -> None:
+    # The generator contract (--seed S --bites N --out DIR), the toy phantom, refusing seed 2.
+    gen_py = tmp_path / "gen.py"
+    gen_py.write_text(
+        "import runpy, sys\n"
+        "args = sys.argv[1:]\n"
+        "if args[args.index('--seed') + 1] == '2' and 'FAIL' in sys.argv[0]:\n"
+        "    sys.exit('refused')\n"
+        "sys.argv = ['sim.synthetic', *args]\n"
+        "runpy.run_module('sim.synthetic', run_name='__main__')\n"
+    )
+    failing = tmp_path / "FAIL_gen.py"
+    failing.write_text(gen_py.read_text())
+    out = tmp_path / "ds"
+    cfg = tiny_sim_config
+    build_dataset(out, [1, 2], cfg, bites=1, phantom_cmd=f"{sys.executable} {gen_py}")
+    assert (out / "dataset.json").is_file() and (out / "dataset_card.json").is_file()
+    seed_2 = _snapshot(out / "seed_2" / "render.json")
+    # Another master seed: seed 1 is rendered again, then seed 2's phantom fails.
+    with pytest.raises(SimError, match="seed 2"):
+        build_dataset(
+            out, [1, 2], replace_in(cfg, seed=7), bites=1, phantom_cmd=f"{sys.executable} {failing}"
+        )
+    assert not (out / "dataset.json").exists() and not (out / "dataset_card.json").exists()
+    assert _snapshot(out / "seed_2" / "render.json") == seed_2
