@@ -280,6 +280,15 @@ def test_a_phantom_seed_that_is_not_an_int64_names_the_file_and_entry(
         assert not isinstance(info.value, OverflowError)
 
 
+def test_a_step_of_1e400_is_one_error_naming_the_entry(tmp_path: Path) -> None:
+    # The step is read leniently (int() of it, as before), but infinity is no step.
+    (tmp_path / "s").mkdir()
+    index = tmp_path / "dataset.json"
+    index.write_text('{"sequences": [{"path": "s", "phantom_seed": 1000, "step": 1e400}]}')
+    with pytest.raises(InvalidInputError, match=r"sequences\[0\]: step must be an integer"):
+        read_step_dataset([index])
+
+
 def test_phantom_seeds_within_int64_are_read(tmp_path: Path) -> None:
     (tmp_path / "s").mkdir()
     index = tmp_path / "dataset.json"

@@ -64,6 +64,12 @@ def _require(cond: bool, key: str, problem: str, error: type[ConfigError]) -> No
         raise error(key, problem)
 
 
+def is_integer(value: Any) -> bool:
+    """Whether ``value`` is an integer (Python's or numpy's), not a bool or a float that
+    happens to be whole: what an ``int`` field, a seed or a count read from a file must be."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
+
+
 def check_value(value: Any, tp: Any, key: str, error: type[ConfigError] = ConfigError) -> Any:
     """``value`` checked against the annotation ``tp``; returns it normalised.
 
@@ -120,7 +126,7 @@ def check_value(value: Any, tp: Any, key: str, error: type[ConfigError] = Config
         return bool(value)
     if tp is int:
         _require(
-            isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_),
+            is_integer(value),
             key,
             f"expected an integer, got {show(value)}",
             error,

@@ -10,7 +10,6 @@ phantom seed so that no phantom is seen in both training and validation; phantom
 from __future__ import annotations
 
 import logging
-import numbers
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -19,7 +18,7 @@ import cv2
 import numpy as np
 import torch
 
-from chisel.core.config import show
+from chisel.core.config import is_integer, show
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.io.manifest import named_path, read_json_manifest
 from chisel.io.sequence import Sequence
@@ -61,8 +60,7 @@ def phantom_seed(value: Any, key: str, where: str | Path) -> int:
     ``true`` or ``"1000"`` are not numbers. Raises :class:`InvalidInputError` naming
     ``where`` (the file and entry) and ``key``.
     """
-    integer = isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
-    if integer and 0 <= int(value) <= MAX_PHANTOM_SEED:
+    if is_integer(value) and 0 <= int(value) <= MAX_PHANTOM_SEED:
         return int(value)
     raise InvalidInputError(
         where, f"{key} must be an integer in [0, 2**63 - 1] (a JSON integer), got {show(value)}"

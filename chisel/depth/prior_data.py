@@ -119,7 +119,7 @@ def _integer(value: Any, what: str, where: str | Path) -> int:
     """A JSON value as an int, as leniently as ``int()`` (as before), else the error."""
     try:
         return int(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # 1e400 reads as infinity
         raise InvalidInputError(where, f"{what} must be an integer, got {value!r}") from None
 
 

@@ -212,8 +212,8 @@ def _frame_index(path: Path, raw: np.ndarray, n: int, n_frames: int) -> np.ndarr
             f"sequence's frames), got {raw.min()}..{raw.max()}",
         )
     idx = raw.astype(np.int64)
-    if len(np.unique(idx)) != len(idx):
-        values, counts = np.unique(idx, return_counts=True)
+    values, counts = np.unique(idx, return_counts=True)
+    if (counts > 1).any():
         raise InvalidInputError(
             path, f"frame_index names frame {int(values[counts > 1][0])} more than once"
         )

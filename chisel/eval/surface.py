@@ -3,12 +3,12 @@ from area-uniform samples and exact point-to-triangle distances (docs/evaluation
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 import trimesh
 
+from chisel.core.config import is_integer
 from chisel.core.errors import EmptyResultError, InvalidInputError
 from chisel.core.raycast import SurfaceQueries
 from chisel.eval.metrics import RoiBox, _check_mesh
@@ -34,11 +34,7 @@ class SurfaceMetricConfig:
 
     def __post_init__(self) -> None:
         n = self.n_samples
-        if (
-            not isinstance(n, numbers.Integral)
-            or isinstance(n, bool | np.bool_)
-            or not MIN_SAMPLES <= n <= MAX_SAMPLES
-        ):
+        if not is_integer(n) or not MIN_SAMPLES <= n <= MAX_SAMPLES:
             raise InvalidInputError(
                 "n_samples", f"must be an integer in [{MIN_SAMPLES}, {MAX_SAMPLES}], got {n!r}"
             )
