@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 from chisel.io.manifest import read_json_value
@@ -299,11 +297,11 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 def _cmd_repair(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from chisel.core.atomic import atomic_write_bytes, check_writable_parent
+    from chisel.core.atomic import check_writable_parent
     from chisel.core.errors import InvalidInputError
     from chisel.io.meshfile import READABLE_MESH_SUFFIXES, read_mesh_file
     from phantoms.errors import NotManifoldError, OutputError
-    from phantoms.io import ply_bytes
+    from phantoms.io import atomic_write_bytes, ply_bytes
     from phantoms.tet import repair_surface
 
     # A file output: an existing file is replaced (atomically, once the repair succeeded);
@@ -313,22 +311,11 @@ def _cmd_repair(args: argparse.Namespace) -> int:
         raise OutputError(f"output {out}", "is a folder; expected the path of a PLY file to write")
     try:
         check_writable_parent(out)
-        # root ignores permission bits: probe by creating a temporary entry beside it
-        fd, probe = tempfile.mkstemp(prefix=f".{out.name}.probe-", dir=out.absolute().parent)
-        os.close(fd)
-        os.unlink(probe)
     except InvalidInputError as exc:
         raise OutputError(f"output {out}", exc.problem) from None
-    except OSError as exc:
-        raise OutputError(f"output {out}", f"cannot write: {exc.strerror or exc}") from None
     mesh = read_mesh_file(args.input, "surface", READABLE_MESH_SUFFIXES, error=NotManifoldError)
     v, f = repair_surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), edge_mm=args.edge_mm)
-    try:
-        atomic_write_bytes(out, ply_bytes(v, f))
-    except InvalidInputError as exc:  # the output changed meanwhile
-        raise OutputError(f"output {out}", exc.problem) from None
-    except OSError as exc:
-        raise OutputError(f"output {out}", f"cannot write: {exc.strerror or exc}") from None
+    atomic_write_bytes(out, ply_bytes(v, f))  # an OSError: OutputError naming the file
     sys.stderr.write(f"repaired surface ({len(f)} triangles) written to {args.output}\n")
     return 0
 
