@@ -119,6 +119,7 @@ class ToolsConfig:
             f"must be in [0.01, 1], got {self.roughness}",
         )
         check(0.0 <= self.diffuse <= 1.0, "tools.diffuse", f"must be in [0, 1], got {self.diffuse}")
+        check(self.max_tries >= 1, "tools.max_tries", f"must be >= 1, got {self.max_tries}")
         if self.material not in CONDUCTOR_MATERIALS:
             same = [m for m in CONDUCTOR_MATERIALS if m.lower() == self.material.lower()]
             hint = f" (did you mean {same[0]!r}?)" if same else ""

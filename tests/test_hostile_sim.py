@@ -208,6 +208,13 @@ def test_unknown_tool_material_is_refused_before_rendering(
 # ----------------------------------------------------------------- phantoms repair
 
 
+def test_tools_need_at_least_one_try() -> None:
+    # The material check was once written over this one: zero tries would place no tool.
+    with pytest.raises(ConfigError, match=r"tools\.max_tries: must be >= 1, got 0"):
+        ToolsConfig(max_tries=0)
+    assert ToolsConfig(max_tries=1).max_tries == 1
+
+
 def test_repair_replaces_an_existing_output_file_and_refuses_a_folder(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
