@@ -130,31 +130,27 @@ UPDATE_BAD = [
 ]
 
 
-@pytest.mark.parametrize(("name", "bad", "expected"), REGISTRATION_BAD)
-def test_every_registration_setting_is_bounded(name: str, bad: object, expected: str) -> None:
+def _bounded(cls: type, key: str, name: str, bad: object, expected: str) -> None:
     with pytest.raises(ConfigError) as info:
-        RegistrationConfig(**{name: bad})  # type: ignore[arg-type]
-    assert info.value.source == f"registration.{name}"
+        cls(**{name: bad})
+    assert info.value.source == key
     assert info.value.problem.startswith(f"must be {expected}")
     assert f", got {bad}" in info.value.problem
+
+
+@pytest.mark.parametrize(("name", "bad", "expected"), REGISTRATION_BAD)
+def test_every_registration_setting_is_bounded(name: str, bad: object, expected: str) -> None:
+    _bounded(RegistrationConfig, f"registration.{name}", name, bad, expected)
 
 
 @pytest.mark.parametrize(("name", "bad", "expected"), CHANGE_BAD)
 def test_every_change_setting_is_bounded(name: str, bad: object, expected: str) -> None:
-    with pytest.raises(ConfigError) as info:
-        ChangeConfig(**{name: bad})  # type: ignore[arg-type]
-    assert info.value.source == f"change.{name}"
-    assert info.value.problem.startswith(f"must be {expected}")
-    assert f", got {bad}" in info.value.problem
+    _bounded(ChangeConfig, f"change.{name}", name, bad, expected)
 
 
 @pytest.mark.parametrize(("name", "bad", "expected"), UPDATE_BAD)
 def test_every_update_setting_is_bounded(name: str, bad: object, expected: str) -> None:
-    with pytest.raises(ConfigError) as info:
-        UpdateConfig(**{name: bad})  # type: ignore[arg-type]
-    assert info.value.source == name
-    assert info.value.problem.startswith(f"must be {expected}")
-    assert f", got {bad}" in info.value.problem
+    _bounded(UpdateConfig, name, name, bad, expected)
 
 
 def test_defaults_limits_and_the_shipped_configs_still_validate() -> None:
