@@ -419,7 +419,55 @@ def build_dataset(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ConfigError(out, "the dataset folder exists and is not a folder")
+    if "{seed}" in str(out):
+        raise ConfigError(
+            out, "the dataset folder's path holds '{seed}', the phantom folders' pattern"
+        )
+    created = _missing_folders(out / "phantoms")
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _build_dataset(
+            out, seeds, cfg, bites, phantom_cmd, phantom_args, resume, progress, command,
+            write_index, phantom_ct,
+        )  # fmt: skip
+    except BaseException:
+        # A run that failed before its first phantom leaves no empty folder of its own
+        # behind; a folder holding anything (a phantom, a render) or made earlier stays.
+        _remove_if_empty(created)
+        raise
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first."""
+    missing = []
+    for p in (path, *path.parents):
+        if p.exists():
+            break
+        missing.append(p)
+    return missing
+
+
+def _remove_if_empty(folders: list[Path]) -> None:
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty, or gone already
+            pass
+
+
+def _build_dataset(
+    out: Path,
+    seeds: list[int],
+    cfg: SimConfig,
+    bites: int,
+    phantom_cmd: str | None,
+    phantom_args: str,
+    resume: bool,
+    progress: bool,
+    command: list[str] | None,
+    write_index: bool,
+    phantom_ct: bool,
+) -> dict[str, Any]:
     seq_cfgs = {s: seed_config(cfg, s) for s in seeds}
     cfg = dataclasses.replace(
         cfg, randomization=dataclasses.replace(cfg.randomization, enabled=True)
@@ -435,10 +483,6 @@ def build_dataset(
         for s in seeds
     }
 
-    if "{seed}" in str(out):
-        raise ConfigError(
-            out, "the dataset folder's path holds '{seed}', the phantom folders' pattern"
-        )
     pattern = str(out / "phantoms" / "seed_{seed}")
     queue = _PhantomQueue(pattern, bites, phantom_cmd, phantom_args, phantom_ct)
     queue.to_generate = [

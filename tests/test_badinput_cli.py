@@ -191,3 +191,18 @@ def test_resume_over_an_unreadable_sequence_json_is_one_line_naming_it(
         assert len(err.splitlines()) == 1, err
         assert err.startswith(f"sim dataset: error: {seq_json}: ") and problem in err, err
     assert (out / "dataset.json").read_text() == listing
+
+
+def test_a_dataset_that_fails_before_its_first_phantom_leaves_no_empty_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "new" / "ds"
+    argv = ["dataset", "--seeds", "1", "--bites", "1", "--out", str(out)]
+    assert main([*argv, *SMALL, "--phantom-cmd", "/nonexistent/gen"]) == 1
+    assert "cannot run the phantom generator" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    # A folder that was there before stays, with what it held.
+    out.mkdir(parents=True)
+    (out / "notes.txt").write_text("mine")
+    assert main([*argv, *SMALL, "--phantom-cmd", "/nonexistent/gen"]) == 1
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
