@@ -85,8 +85,9 @@ class SequenceDepth:
         self, path: str | Path, expected_frames: int | None = None, of: Sequence | None = None
     ) -> None:
         """``of``: the sequence being updated; the depth's camera and poses must be its own
-        (depth of other frames, or through another camera, was accepted unseen)."""
-        self.sequence = Sequence(path)
+        (depth of other frames, or through another camera, was accepted unseen); links out
+        of the depth folder are read only if ``of`` allows them in its own."""
+        self.sequence = Sequence(path, allow_outside=of is not None and of.allow_outside)
         if of is not None:
             expected_frames = len(of)
             _check_same_frames(self.sequence, of)

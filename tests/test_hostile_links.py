@@ -79,9 +79,9 @@ def test_sequence_part_linking_out_is_refused(two_seqs: tuple[Path, Path], part:
     with pytest.raises(OutsideManifestError, match=re.escape(f"names '{part}', which is ")) as e:
         read_all(seq)
     assert "outside the manifest's folder" in str(e.value)
-    # No command has a flag for it: the message names the Python opt-in, not a flag.
+    # The message names the commands' flag and the Python opt-in.
     assert "allow_outside=True to chisel.io.sequence.Sequence" in str(e.value)
-    assert "--allow-outside" not in str(e.value)
+    assert "--allow-outside-sequence to chisel build, update or render-depth" in str(e.value)
 
 
 @pytest.mark.parametrize("part", PARTS)
@@ -329,3 +329,32 @@ def test_nrrd_header_with_long_comments_and_key_values_reads(ct_dirs: tuple[Path
     header = ct / "long_ok.nhdr"
     header.write_text(nrrd_header("x.raw").replace("encoding: raw\n", f"encoding: raw\n{extra}\n"))
     assert read_ct_volume(header).data.shape == SHAPE
+
+
+def test_the_commands_read_a_linked_sequence_only_with_their_flag(
+    two_seqs: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``chisel render-depth`` and ``chisel update`` (its ``sequence:`` depth folder too)
+    refuse a subfolder linked out of the sequence folder and read it given
+    --allow-outside-sequence."""
+    seq, other = two_seqs
+    replace_by_link(seq / "mask", other / "mask")
+    mesh = tmp_path / "plane.ply"
+    trimesh.creation.box(extents=(40.0, 40.0, 1.0)).apply_translation((0, 0, 30)).export(mesh)
+    render = ["render-depth", "--mesh", str(mesh), "--sequence", str(seq)]
+    assert chisel_main([*render, "--out", str(tmp_path / "r1")]) == 1
+    assert "--allow-outside-sequence" in capsys.readouterr().err
+    assert not (tmp_path / "r1").exists()
+    assert chisel_main([*render, "--out", str(tmp_path / "r2"), "--allow-outside-sequence"]) == 0
+    model = tmp_path / "m0.npz"
+    build = ["build", "--surface", str(mesh), "--sequence", str(seq), "--out", str(model)]
+    assert chisel_main([*build, "--no-progress"]) == 1
+    assert not model.exists()
+    assert chisel_main([*build, "--no-progress", "--allow-outside-sequence"]) == 0
+    update = ["update", "--model", str(model), "--sequence", str(tmp_path / "r2"), "--no-progress"]
+    depth = ["--depth-source", f"sequence:{seq}", "--no-registration"]
+    assert chisel_main([*update, "--out", str(tmp_path / "m1.npz"), *depth]) == 1
+    assert "'mask'" in capsys.readouterr().err
+    assert not (tmp_path / "m1.npz").exists()
+    out = tmp_path / "m2.npz"
+    assert chisel_main([*update, "--out", str(out), *depth, "--allow-outside-sequence"]) == 0

@@ -61,6 +61,16 @@ def _add_mesh_out(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_allow_outside_sequence(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--allow-outside-sequence",
+        action="store_true",
+        help="read a sequence whose files or subfolders are links leading out of its folder "
+        "(frames kept on another disk); refused by default, so that a sequence cannot make "
+        "the program read another patient's or the system's files",
+    )
+
+
 def _add_ct_surface(sub: argparse._SubParsersAction) -> None:
     p = _parser(
         sub,
@@ -151,6 +161,7 @@ def _add_build(sub: argparse._SubParsersAction) -> None:
         help="--from-ct: initial weight of every voxel the CT covers (1.0)",
     )
     p.add_argument("--sequence", required=True, type=Path, help="preoperative sequence folder")
+    _add_allow_outside_sequence(p)
     p.add_argument(
         "--out", required=True, type=Path, help="output model file (.npz)", action=Output
     )
@@ -176,6 +187,7 @@ def _add_update(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--model", required=True, type=Path, help="model of the previous step")
     p.add_argument("--sequence", required=True, type=Path, help="sequence of this step")
+    _add_allow_outside_sequence(p)
     p.add_argument(
         "--out",
         required=True,
@@ -261,6 +273,7 @@ def _add_render_depth(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--model", type=Path, help="model file (.npz)")
     src.add_argument("--mesh", type=Path, help="mesh or CT segmentation (world mm)")
     p.add_argument("--sequence", required=True, type=Path, help="sequence folder (poses)")
+    _add_allow_outside_sequence(p)
     p.add_argument("--out", required=True, type=Path, help="output sequence folder", action=Output)
     p.add_argument("--true-poses", action="store_true", help="render at the true poses")
     p.set_defaults(func=_cmd_render_depth)
@@ -357,7 +370,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         ct_weight=args.ct_weight,
         max_miss_fraction=args.max_miss_fraction,
     )
-    seq = Sequence(args.sequence)
+    seq = Sequence(args.sequence, allow_outside=args.allow_outside_sequence)
     ct = _read_ct(args) if args.from_ct is not None else None
     surface = None if ct is not None else load_ct_surface(args.surface)
     if args.color and not seq.has_rgb:
@@ -427,7 +440,7 @@ def _cmd_update(args: argparse.Namespace) -> int:
                 "--ct",
                 f"{args.model} was built on another CT than {args.ct} (content hashes differ)",
             )
-    seq = Sequence(args.sequence)
+    seq = Sequence(args.sequence, allow_outside=args.allow_outside_sequence)
     source = depth_source_from_spec(args.depth_source, seq)
     if args.depth_noise_mm > 0:
         source = _NoisyDepth(source, args.depth_noise_mm, args.depth_noise_seed)
@@ -512,7 +525,7 @@ def _cmd_render_depth(args: argparse.Namespace) -> int:
     from chisel.model import TsdfModel
     from chisel.render import ModelRenderer
 
-    seq = Sequence(args.sequence)
+    seq = Sequence(args.sequence, allow_outside=args.allow_outside_sequence)
     if args.model is not None:
         render = ModelRenderer(TsdfModel.load(args.model)).render
     else:

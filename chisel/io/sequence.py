@@ -52,7 +52,10 @@ from chisel.io.manifest import check_inside, json_type, read_json_manifest
 from chisel.io.undistort import check_lens_model
 
 SEQUENCE_FORMAT = "endoscopic-chisel/sequence"
-ALLOW_OUTSIDE_SEQUENCE = "allow_outside=True to chisel.io.sequence.Sequence"
+ALLOW_OUTSIDE_SEQUENCE = (
+    "--allow-outside-sequence to chisel build, update or render-depth, or allow_outside=True "
+    "to chisel.io.sequence.Sequence,"
+)
 SEQUENCE_VERSION = 1
 
 MIN_PLAUSIBLE_MEDIAN_DEPTH_MM = 0.5
@@ -497,8 +500,6 @@ class Sequence:
         unless the file is a link)."""
         path = self.path / name
         if not self.allow_outside and os.path.islink(path):
-            # No command has an option for it: reading such a sequence is a choice made
-            # in Python (the message must not name a flag `chisel update` lacks).
             check_inside(self._header_path, Path(name), what, option=ALLOW_OUTSIDE_SEQUENCE)
         return path
 
