@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import cast
 
 import numpy as np
@@ -51,7 +51,7 @@ from chisel.registration import (
     tracking_excess,
 )
 from chisel.render import ModelRenderer
-from chisel.reports import StepReport, shading_report
+from chisel.reports import FrameReport, StepReport, shading_report
 from chisel.shading import step_correction
 from chisel.update_config import UpdateConfig
 from chisel.updater import finish_step, fuse, shading_translation_of
@@ -60,6 +60,8 @@ log = logging.getLogger(__name__)
 
 MIN_TRACKER_FITNESS = 0.5
 """Below this median ICP fitness from the tracked poses, search globally."""
+SKIPPED_OCCLUDED = "an instrument in view (skip_occluded_frames)"
+"""The report's reason for a frame ``UpdateConfig.skip_occluded_frames`` left out."""
 
 
 @dataclass(frozen=True)
@@ -81,6 +83,10 @@ class StepPlan:
     """The estimates are up to scale (:func:`chisel.detect.scale_free`)."""
     pose_correction: dict | None = None
     """The shading's correction applied to every tracked pose first, for the report."""
+    frames: list[Frame] = field(default_factory=list)
+    """The frames the step uses, one per input (``cfg.skip_occluded_frames`` leaves some out)."""
+    skipped: list[FrameReport] = field(default_factory=list)
+    """A report for each frame left out."""
 
 
 def plan_step(
@@ -94,7 +100,8 @@ def plan_step(
 
     Every frame is validated (poses rigid and inside the model's volume, depth
     plausible) here, before anything is fused, so bad input raises without a
-    half-updated result.
+    half-updated result; a frame ``cfg.skip_occluded_frames`` leaves out is checked for
+    its pose only (its depth is never estimated).
     """
     metric = is_metric(depth_source)
     solve_for_scale = scale_free(cfg, depth_source)
@@ -104,10 +111,23 @@ def plan_step(
     renderer = ModelRenderer(model)
     renders: list[np.ndarray | None] = [None] * len(frames)
     correction = None
-    if cfg.register or cfg.shading.align_by_shading or wants_prior(depth_source):
+    skip = cfg.skip_occluded_frames
+    if skip or cfg.register or cfg.shading.align_by_shading or wants_prior(depth_source):
         # M_t at every tracked pose: registration's reference, the shading's prediction,
-        # and the prior handed to a depth source that wants one (the change-aware network).
+        # the prior handed to a depth source that wants one (the change-aware network),
+        # and what tells an instrument in view.
         renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
+    skipped: list[FrameReport] = []
+    if skip:
+        keep = _unoccluded(frames, cast(list[np.ndarray], renders))
+        skipped = [
+            FrameReport(f.index, False, SKIPPED_OCCLUDED)
+            for f, k in zip(frames, keep, strict=True)
+            if not k
+        ]
+        frames = [f for f, k in zip(frames, keep, strict=True) if k]
+        poses = [T for T, k in zip(poses, keep, strict=True) if k]
+        renders = [R for R, k in zip(renders, keep, strict=True) if k]
     if cfg.shading.align_by_shading and renders[0] is not None:
         rendered = cast(list[np.ndarray], renders)
         shifts = [
@@ -142,7 +162,23 @@ def plan_step(
             frames, poses, estimates, renders, scales, reliable, strict=True
         )
     ]
-    return StepPlan(inputs, renderer, F, seq_reg, step_cfg, solve_for_scale, correction)
+    return StepPlan(
+        inputs, renderer, F, seq_reg, step_cfg, solve_for_scale, correction, frames, skipped
+    )
+
+
+def _unoccluded(frames: list[Frame], renders: list[np.ndarray]) -> np.ndarray:
+    """(N,) bool: the frames without an instrument in view (:func:`chisel.fill.
+    occluded_frames`); every frame when all have one (a step never fails on it)."""
+    occluded = occluded_frames([f.mask for f in frames], np.stack(renders))
+    if occluded.all():
+        log.info("every frame of the step has an instrument in view: all are used")
+        return np.ones(len(frames), dtype=bool)
+    if occluded.any():
+        log.info(
+            "%d of %d frames have an instrument in view: left out", occluded.sum(), len(frames)
+        )
+    return ~occluded
 
 
 def _register_step(
@@ -257,6 +293,7 @@ def update_step(
     if not frames:
         raise InvalidInputError("frames", "a step needs at least one frame")
     plan = plan_step(model, camera, frames, depth_source, cfg)
+    frames = plan.frames
     step_cfg = plan.cfg
     hand_eye = HandEye()
     if plan.hand_eye is not None:
@@ -290,6 +327,7 @@ def update_step(
         fuse(new, camera, d, step_cfg, reset, f.rgb, keep_maps, votes, estimate, inp.reliable)
         for f, d, inp in zip(frames, dets, plan.inputs, strict=True)
     ]
+    reports = sorted(reports + plan.skipped, key=lambda r: r.index)
     return finish_step(new, reports, plan.sequence_registration, step_cfg, plan.pose_correction)
 
 
