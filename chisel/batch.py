@@ -111,7 +111,9 @@ def plan_step(
     renderer = ModelRenderer(model)
     renders: list[np.ndarray | None] = [None] * len(frames)
     correction = None
-    skip = cfg.skip_occluded_frames
+    # Metric depth (exact, a sensor's) is not thrown off by a tool beside the tissue, and
+    # its frames' other views would be lost: only estimates leave occluded frames out.
+    skip = cfg.skip_occluded_frames and (solve_for_scale or is_estimate(depth_source))
     if skip or cfg.register or cfg.shading.align_by_shading or wants_prior(depth_source):
         # M_t at every tracked pose: registration's reference, the shading's prediction,
         # the prior handed to a depth source that wants one (the change-aware network),

@@ -51,11 +51,13 @@ class UpdateConfig:
     the change-aware row on seed 3 too (1.13x against 1.06x at step 2): off by default
     (docs/updater.md)."""
     skip_occluded_frames: bool = False
-    """Batch mode: a frame whose mask hides tissue that the step's other frames see (an
+    """Batch mode, an estimate (a relative one, whose scale is solved, or one that declares
+    ``is_estimate``): a frame whose mask hides tissue that the step's other frames see (an
     instrument in view, :func:`chisel.fill.occluded_frames`) is left out of the step, as
     the paper picked tool-free frames by hand; the report lists it as skipped. A step
     whose every frame has one uses them all. A network's estimate changes across the
-    whole frame when a tool is in it, not only beside the tool (docs/updater.md)."""
+    whole frame when a tool is in it, not only beside the tool; metric depth does not,
+    and exact depth lost 1.24x at a step without those frames' views (docs/updater.md)."""
     shading: ShadingConfig = field(default_factory=ShadingConfig)
     """Poses corrected by the frames' shading (off by default; :mod:`chisel.shading`)."""
     max_points: int = 1500

@@ -33,16 +33,18 @@ def scene() -> dict:
     return {"model": model, "cam": cam, "frames": frames, "with_tool": with_tool}
 
 
-def _source(asked: list[int]) -> CallableDepth:
-    """Exact depth, except in the tool episode: 5 mm too deep beyond the tool too (a depth
-    network thrown off by the tool)."""
+def _source(asked: list[int], metric: bool = False) -> CallableDepth:
+    """Depth up to scale (a monocular network's), except in the tool episode: 5 mm too deep
+    beyond the tool too (a network thrown off by the tool). ``metric``: exact depth."""
 
     def depth(f: Frame) -> np.ndarray:
         asked.append(f.index)
         d = np.asarray(f.depth_mm, dtype=np.float32)
-        return d + np.float32(5.0) if f.index in HELD else d
+        if metric:
+            return d
+        return np.float32(0.037) * (d + np.float32(5.0) if f.index in HELD else d)
 
-    return CallableDepth(depth, metric=True)
+    return CallableDepth(depth, metric=metric)
 
 
 def test_frames_with_an_instrument_are_left_out_and_reported(scene: dict) -> None:
@@ -85,4 +87,15 @@ def test_a_step_whose_every_frame_has_an_instrument_uses_them_all(scene: dict) -
     cfg = UpdateConfig(skip_occluded_frames=True, register=False)
     asked: list[int] = []
     _, rep = update_step(scene["model"], scene["cam"], frames, _source(asked), cfg)
+    assert rep.to_dict()["frames_skipped"] == [] and sorted(asked) == list(range(12))
+
+
+def test_metric_depth_keeps_every_frame(scene: dict) -> None:
+    """A tool does not throw off metric depth elsewhere in the frame, and the frame's
+    other views count: exact depth is never left out."""
+    cfg = UpdateConfig(skip_occluded_frames=True, register=False)
+    asked: list[int] = []
+    _, rep = update_step(
+        scene["model"], scene["cam"], scene["with_tool"], _source(asked, metric=True), cfg
+    )
     assert rep.to_dict()["frames_skipped"] == [] and sorted(asked) == list(range(12))
