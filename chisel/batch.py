@@ -83,10 +83,8 @@ class StepPlan:
     """The estimates are up to scale (:func:`chisel.detect.scale_free`)."""
     pose_correction: dict | None = None
     """The shading's correction applied to every tracked pose first, for the report."""
-    frames: list[Frame] = field(default_factory=list)
-    """The frames the step uses, one per input (``cfg.skip_occluded_frames`` leaves some out)."""
     skipped: list[FrameReport] = field(default_factory=list)
-    """A report for each frame left out."""
+    """A report for each frame ``cfg.skip_occluded_frames`` left out (not in ``inputs``)."""
 
 
 def plan_step(
@@ -164,9 +162,7 @@ def plan_step(
             frames, poses, estimates, renders, scales, reliable, strict=True
         )
     ]
-    return StepPlan(
-        inputs, renderer, F, seq_reg, step_cfg, solve_for_scale, correction, frames, skipped
-    )
+    return StepPlan(inputs, renderer, F, seq_reg, step_cfg, solve_for_scale, correction, skipped)
 
 
 def _unoccluded(frames: list[Frame], renders: list[np.ndarray]) -> np.ndarray:
@@ -295,7 +291,7 @@ def update_step(
     if not frames:
         raise InvalidInputError("frames", "a step needs at least one frame")
     plan = plan_step(model, camera, frames, depth_source, cfg)
-    frames = plan.frames
+    frames = [inp.frame for inp in plan.inputs]  # without those the plan left out
     step_cfg = plan.cfg
     hand_eye = HandEye()
     if plan.hand_eye is not None:
