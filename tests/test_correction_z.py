@@ -9,7 +9,6 @@ import test_updater_scenes as sc
 from scipy.spatial.transform import Rotation
 
 from chisel.batch import update_step
-from chisel.build import BuildConfig, build_preop_model
 from chisel.core.geometry import rotation_angle_deg
 from chisel.depth_source import CallableDepth
 from chisel.registration import correction_z, robust_mean_transform
@@ -70,9 +69,7 @@ def test_too_few_or_identical_corrections() -> None:
 
 def test_the_step_report_says_whether_the_frames_agree_on_the_hand_eye_correction() -> None:
     tissue, cam = sc.tissue_mesh(), sc.camera()
-    model = build_preop_model(
-        tissue, cam, sc.preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5)
-    )
+    model = sc.preop_model(tissue, cam)
     bitten, P = sc.bitten_mesh(tissue), sc.poses(8, seed=2)
     src = CallableDepth(lambda f: f.depth_mm * 0.037)
     # One constant 1 mm / 1 deg hand-eye error, exact depth up to scale: the frames agree.

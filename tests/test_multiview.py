@@ -9,12 +9,11 @@ from test_updater_scenes import (
     camera,
     frames,
     poses,
-    preop_poses,
+    preop_model,
     tissue_mesh,
 )
 
 from chisel.batch import update_step
-from chisel.build import BuildConfig, build_preop_model
 from chisel.change import (
     ChangeConfig,
     change_mask,
@@ -38,7 +37,7 @@ SINGLE = ChangeConfig(min_views=0, noise_k=0.0)
 def scene() -> dict:
     tissue = tissue_mesh()
     cam = camera()
-    model = build_preop_model(tissue, cam, preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5))
+    model = preop_model(tissue, cam)
     return {"tissue": tissue, "bitten": bitten_mesh(tissue), "cam": cam, "model": model}
 
 

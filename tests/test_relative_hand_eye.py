@@ -10,7 +10,6 @@ import pytest
 import test_updater_scenes as sc
 
 from chisel.batch import update_step
-from chisel.build import BuildConfig, build_preop_model
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import rotation_angle_deg
 from chisel.depth_source import CallableDepth, GroundTruthDepth
@@ -21,9 +20,7 @@ from chisel.update_config import UpdateConfig
 @pytest.fixture(scope="module")
 def step_inputs() -> dict:
     tissue, cam = sc.tissue_mesh(), sc.camera()
-    model = build_preop_model(
-        tissue, cam, sc.preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5)
-    )
+    model = sc.preop_model(tissue, cam)
     P = sc.poses(12, seed=2)
     E = sc.pose_error(1.0, 1.0, seed=10)  # one constant camera-side error: T_tracked = T E
     tracked = np.stack([T @ E for T in P])

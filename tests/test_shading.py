@@ -194,13 +194,11 @@ def test_the_update_config_reaches_the_alignment() -> None:
 
 @pytest.fixture(scope="module")
 def room() -> dict:
-    from test_updater_scenes import camera, poses, preop_poses, tissue_mesh
-
-    from chisel.build import BuildConfig, build_preop_model
+    from test_updater_scenes import camera, poses, preop_model, tissue_mesh
 
     tissue = tissue_mesh()
     cam = camera(192, 160)
-    model = build_preop_model(tissue, cam, preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5))
+    model = preop_model(tissue, cam)
     true_poses = poses(8, seed=5)
     error = _shift(0.9, -0.6)  # the same camera-side error in every frame: a hand-eye error
     frames = [

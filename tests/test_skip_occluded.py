@@ -10,7 +10,6 @@ import pytest
 import test_updater_scenes as sc
 
 from chisel.batch import SKIPPED_OCCLUDED, update_step
-from chisel.build import BuildConfig, build_preop_model
 from chisel.depth_source import CallableDepth
 from chisel.io.sequence import Frame
 from chisel.update_config import UpdateConfig
@@ -21,9 +20,7 @@ HELD = {3, 4, 5}  # a tool episode: consecutive frames
 @pytest.fixture(scope="module")
 def scene() -> dict:
     tissue, cam = sc.tissue_mesh(), sc.camera()
-    model = build_preop_model(
-        tissue, cam, sc.preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5)
-    )
+    model = sc.preop_model(tissue, cam)
     P = sc.poses(12, seed=2)
     frames = sc.frames(sc.bitten_mesh(tissue), cam, P, P)
     h, w = cam.shape

@@ -10,10 +10,12 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from chisel.build import BuildConfig, build_preop_model
 from chisel.core.geometry import Camera, look_at, make_transform
 from chisel.core.raycast import MeshRaycaster
 from chisel.depth_source import GroundTruthDepth
 from chisel.io.sequence import Frame
+from chisel.model import TsdfModel
 
 ROOM_LO = np.array([-15.0, -12.0, -10.0])
 ROOM_HI = np.array([15.0, 12.0, 25.0])
@@ -87,6 +89,12 @@ def preop_poses(n: int, seed: int) -> np.ndarray:
         up = np.array([0.0, -1.0, 0.0]) if abs(target[1]) < 10 else np.array([0.0, 0.0, 1.0])
         out.append(look_at(eye, target, up + rng.normal(0.0, 0.1, 3)))
     return np.stack(out)
+
+
+def preop_model(tissue: trimesh.Trimesh, cam: Camera) -> TsdfModel:
+    """The room's preoperative model: 30 sweep poses (:func:`preop_poses`, seed 1), 0.5 mm
+    voxels."""
+    return build_preop_model(tissue, cam, preop_poses(30, seed=1), BuildConfig(voxel_size_mm=0.5))
 
 
 def pose_error(shift_mm: float, angle_deg: float, seed: int) -> np.ndarray:
