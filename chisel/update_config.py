@@ -57,7 +57,9 @@ class UpdateConfig:
     the paper picked tool-free frames by hand; the report lists it as skipped. A step
     whose every frame has one uses them all. A network's estimate changes across the
     whole frame when a tool is in it, not only beside the tool; metric depth does not,
-    and exact depth lost 1.24x at a step without those frames' views (docs/updater.md)."""
+    and exact depth lost 1.24x at a step without those frames' views (docs/updater.md).
+    Off by default: it helps the paper's row, and loses the registration ablation (1.27x)
+    and the change-aware row (1.13x) a step each on seeds 0-4 that they pass without it."""
     shading: ShadingConfig = field(default_factory=ShadingConfig)
     """Poses corrected by the frames' shading (off by default; :mod:`chisel.shading`)."""
     max_points: int = 1500
