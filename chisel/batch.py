@@ -38,7 +38,7 @@ from chisel.detect import (
 )
 from chisel.fill import confirm_fill, occluded_frames
 from chisel.fusion import check_pose_in_model
-from chisel.icp import icp_similarity
+from chisel.icp import icp_hand_eye, icp_similarity
 from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
 from chisel.registration import (
@@ -403,12 +403,25 @@ def _hand_eye(
             "reason": "no frame registered in the first pass",
         }  # fmt: skip
     F = robust_mean_transform(Fs)
+    if cfg.hand_eye_estimator == "joint":
+        # Refined from the median with every frame that has a scale, not only the sample.
+        every = [i for i, s in enumerate(scales) if s is not None]
+        clouds = [
+            sample_points(camera, float(cast(float, scales[i])) * estimates[i], np.eye(4),
+                          cfg.sequence_points)
+            for i in every
+        ]  # fmt: skip
+        kept = [k for k, c in enumerate(clouds) if len(c) >= 10]
+        F, _, _ = icp_hand_eye(
+            [clouds[k] for k in kept], [poses[every[k]] for k in kept], renderer.index, F, rcfg,
+            estimate_scale=solve_for_scale,
+        )  # fmt: skip
     # How well the frames determine F, for the report (docs/updater.md); None = they agree
     # exactly. Gating on it was measured and refused (docs/results.md, thirty-fourth session).
     z = [v if np.isfinite(v) else None for v in correction_z(F, Fs)]
     return F, {
         "ok": True, "frames": len(Fs), "fitness_median": fitness,
-        "T_cam_from_corrected_cam": F.tolist(),
+        "T_cam_from_corrected_cam": F.tolist(), "estimator": cfg.hand_eye_estimator,
         "z_rotation": z[0], "z_translation": z[1],
     }  # fmt: skip
 

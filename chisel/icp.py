@@ -389,3 +389,82 @@ def icp_similarity(
     else:
         rmse = float("nan")
     return SimilarityResult(T, sigma, fitness, rmse, it)
+
+
+def _rotvec(w: np.ndarray) -> np.ndarray:
+    return np.asarray(_rotvec_to_matrix(np.asarray(w, dtype=np.float64)))
+
+
+def icp_hand_eye(
+    clouds_cam: list[np.ndarray],
+    poses: list[np.ndarray],
+    surface: SurfaceIndex,
+    init: np.ndarray,
+    cfg: RegistrationConfig,
+    estimate_scale: bool = True,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """One camera-side correction F for all frames at once, by robust point-to-plane ICP.
+
+    The tracker's hand-eye error is the same in every frame: a frame's points ``x``
+    (camera mm, already scaled) land at ``T_i F (s_i x)`` in the world. F (6 DoF, in the
+    camera frame) is solved from every frame's points together, each frame with its own
+    depth scale ``s_i`` about its camera centre when ``estimate_scale``; Tukey weights as in
+    :func:`icp_similarity`. A frame that sees a plane cannot fix F's rotation alone, and
+    the median of per-frame corrections carries its arbitrary rotation; the joint normal
+    equations weight each direction by the frames that constrain it.
+
+    Returns (F (4, 4), per-frame scales (n,), fitness of all points after alignment).
+    """
+    n_frames = len(clouds_cam)
+    fid = np.concatenate([np.full(len(c), i) for i, c in enumerate(clouds_cam)])
+    X = np.concatenate(clouds_cam).astype(np.float64)
+    Rw = np.stack([np.asarray(T, np.float64)[:3, :3] for T in poses])[fid]
+    tw = np.stack([np.asarray(T, np.float64)[:3, 3] for T in poses])[fid]
+    F = np.asarray(init, dtype=np.float64).copy()
+    logs = np.zeros(n_frames)
+
+    def place() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        zs = np.exp(logs)[fid, None] * X
+        z = zs @ F[:3, :3].T + F[:3, 3]
+        return zs, z, np.einsum("nij,nj->ni", Rw, z) + tw
+
+    for dist in cfg.icp_max_dist_mm:
+        k = max(cfg.tukey_k_mm, dist / 2.0)
+        for _ in range(cfg.icp_max_iter):
+            zs, z, y = place()
+            d, idx = surface.query(y, dist)
+            ok = np.isfinite(d)
+            if ok.sum() < 10:
+                break
+            nw = surface.normals[idx[ok]]
+            r = np.einsum("ij,ij->i", y[ok] - surface.points[idx[ok]], nw)
+            w = np.where(np.abs(r) < k, (1.0 - (r / k) ** 2) ** 2, 0.0)
+            nc = np.einsum("nji,nj->ni", Rw[ok], nw)  # the normal in the camera frame
+            J = np.hstack([np.cross(z[ok], nc), nc])
+            A = J.T @ (w[:, None] * J)
+            b = -J.T @ (w * r)
+            ds = np.zeros(n_frames)
+            if estimate_scale:
+                # Each frame's log scale is its own unknown: eliminated (Schur complement)
+                # so that F and the scales take one Gauss-Newton step together.
+                f = fid[ok]
+                js = np.einsum("ij,ij->i", zs[ok] @ F[:3, :3].T, nc)
+                D = np.bincount(f, w * js * js, n_frames) + 1e-12
+                bs = np.bincount(f, -w * js * r, n_frames)
+                B = np.stack([np.bincount(f, w * js * J[:, c], n_frames) for c in range(6)], 1)
+                A = A - B.T @ (B / D[:, None])
+                b = b - B.T @ (bs / D)
+            A += (1e-9 * np.trace(A) + 1e-12) * np.eye(6)
+            x = np.linalg.solve(A, b)
+            if estimate_scale:
+                ds = (bs - B @ x) / D
+                logs += ds
+            dR = _rotvec(x[:3])
+            F[:3, :3] = dR @ F[:3, :3]
+            F[:3, 3] = dR @ F[:3, 3] + x[3:]
+            if (np.abs(x[:3]).max() < 2e-5 and np.abs(x[3:]).max() < 1e-3
+                    and np.abs(ds).max() < 2e-5):  # fmt: skip
+                break
+    _, _, y = place()
+    d, _ = surface.query(y, cfg.fitness_dist_mm)
+    return F, np.exp(logs), float(np.isfinite(d).mean())

@@ -69,6 +69,15 @@ class UpdateConfig:
     hand_eye_frames: int = 20
     """Batch mode: at most this many frames, evenly spaced, estimate the hand-eye
     correction F (a robust median: more frames add time, not accuracy)."""
+    hand_eye_estimator: Literal["median", "joint"] = "median"
+    """Batch mode: how the step's hand-eye correction F is found. "median" = the robust
+    median of the sampled frames' own ICP corrections; "joint" = refined from it by one
+    robust ICP over every frame's points at once, F shared and each frame's depth scale
+    its own (:func:`chisel.icp.icp_hand_eye`). A frame that sees little more than one
+    wall fixes only some of F's six degrees of freedom and its own correction carries the
+    others wherever its ICP left them; the joint solve weighs each direction by the
+    frames that fix it. Off by default: on the benchmark exact depth ties (0.998x) and a
+    network's F is its shape error either way (docs/updater.md)."""
     relative_hand_eye: Literal["step", "frame"] = "step"
     """Batch mode, an estimate whose scale is solved (a monocular network's): "step" = the
     step's hand-eye correction F places every frame (beyond the tracking accuracy it is

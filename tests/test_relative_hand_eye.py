@@ -19,13 +19,7 @@ from chisel.update_config import UpdateConfig
 
 @pytest.fixture(scope="module")
 def step_inputs() -> dict:
-    tissue, cam = sc.tissue_mesh(), sc.camera()
-    model = sc.preop_model(tissue, cam)
-    P = sc.poses(12, seed=2)
-    E = sc.pose_error(1.0, 1.0, seed=10)  # one constant camera-side error: T_tracked = T E
-    tracked = np.stack([T @ E for T in P])
-    frames = sc.frames(sc.bitten_mesh(tissue), cam, P, tracked)
-    return {"model": model, "cam": cam, "frames": frames, "tracked": tracked, "E": E}
+    return sc.hand_eye_step()
 
 
 def test_each_frame_undoes_the_hand_eye_error_on_its_own(step_inputs: dict) -> None:

@@ -140,3 +140,19 @@ def test_cameras_see_the_far_wall() -> None:
     for f in frames(tissue_mesh(), cam, P):
         d = f.depth_mm
         assert np.isfinite(d).all() and 5.0 < np.median(d) < 30.0
+
+
+def hand_eye_step() -> dict:
+    """A bitten step of 12 frames whose tracked poses carry one constant camera-side error
+    E (1 mm, 1 deg; ``T_tracked = T E``): keys model, cam, frames, tracked, E."""
+    tissue, cam = tissue_mesh(), camera()
+    P = poses(12, seed=2)
+    E = pose_error(1.0, 1.0, seed=10)
+    tracked = np.stack([T @ E for T in P])
+    return {
+        "model": preop_model(tissue, cam),
+        "cam": cam,
+        "frames": frames(bitten_mesh(tissue), cam, P, tracked),
+        "tracked": tracked,
+        "E": E,
+    }
