@@ -405,16 +405,13 @@ def _hand_eye(
     F = robust_mean_transform(Fs)
     if cfg.hand_eye_estimator == "joint":
         # Refined from the median with every frame that has a scale, not only the sample.
-        every = [i for i, s in enumerate(scales) if s is not None]
-        clouds = [
-            sample_points(camera, float(cast(float, scales[i])) * estimates[i], np.eye(4),
-                          cfg.sequence_points)
-            for i in every
-        ]  # fmt: skip
+        every = [(i, s) for i, s in enumerate(scales) if s is not None]
+        clouds = [sample_points(camera, s * estimates[i], np.eye(4), cfg.sequence_points)
+                  for i, s in every]  # fmt: skip
         kept = [k for k, c in enumerate(clouds) if len(c) >= 10]
         F, _, _ = icp_hand_eye(
-            [clouds[k] for k in kept], [poses[every[k]] for k in kept], renderer.index, F, rcfg,
-            estimate_scale=solve_for_scale,
+            [clouds[k] for k in kept], [poses[every[k][0]] for k in kept], renderer.index, F,
+            rcfg, estimate_scale=solve_for_scale,
         )  # fmt: skip
     # How well the frames determine F, for the report (docs/updater.md); None = they agree
     # exactly. Gating on it was measured and refused (docs/results.md, thirty-fourth session).

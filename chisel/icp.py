@@ -391,10 +391,6 @@ def icp_similarity(
     return SimilarityResult(T, sigma, fitness, rmse, it)
 
 
-def _rotvec(w: np.ndarray) -> np.ndarray:
-    return np.asarray(_rotvec_to_matrix(np.asarray(w, dtype=np.float64)))
-
-
 def icp_hand_eye(
     clouds_cam: list[np.ndarray],
     poses: list[np.ndarray],
@@ -459,7 +455,7 @@ def icp_hand_eye(
             if estimate_scale:
                 ds = (bs - B @ x) / D
                 logs += ds
-            dR = _rotvec(x[:3])
+            dR = _rotvec_to_matrix(x[:3])
             F[:3, :3] = dR @ F[:3, :3]
             F[:3, 3] = dR @ F[:3, 3] + x[3:]
             if (np.abs(x[:3]).max() < 2e-5 and np.abs(x[3:]).max() < 1e-3
