@@ -19,17 +19,21 @@ poses, it prints the image misalignment between each frame's corrected pose and 
 pose (median pixel displacement of the model's visible points, mean over frames) for: no
 correction, the step correction with the shift converted at the median depth, and at the
 parallax depth; with ``--oracle`` also the best constant sideways translation (searched
-on the true poses: a bound no frame-based estimate can beat). Per step it also prints the
+on the true poses: a bound no frame-based estimate can beat); with ``--odometry`` also the
+poses smoothed by the frames' odometry (:mod:`chisel.odometry`, every frame of the step)
+alone and then corrected by the shading's step correction measured from them. Per step it also prints the
 measured shifts' least-squares slope against the true flow at each depth, both axes
 pooled (1 = the conversion matches the shift).
 
 Prints ``name: value`` lines: per seed and step ``seed_S_step_K_{none,median,parallax}_px``
-(and ``_oracle_px``), ``seed_S_step_K_slope_{median,parallax}``; then means,
-``parallax_better_steps`` and last ``parallax_over_median_misalignment_geomean`` (< 1: the
+(and ``_oracle_px``, ``_odometry_px``, ``_odometry_median_px``),
+``seed_S_step_K_slope_{median,parallax}``; then means,
+``parallax_better_steps``, with ``--odometry`` ``odometry_better_steps`` and
+``odometry_over_median_misalignment_geomean``, and last ``parallax_over_median_misalignment_geomean`` (< 1: the
 parallax depth aligns better).
 
     .venv/bin/python benchmarks/bench_shading_alignment.py --run RUN/results/default \\
-        --seeds 0-4 [--steps 1-5] [--method updated] [--frame-step 1] [--oracle]
+        --seeds 0-4 [--steps 1-5] [--method updated] [--frame-step 1] [--oracle] [--odometry]
 """
 
 from __future__ import annotations
@@ -47,8 +51,10 @@ sys.path.insert(0, str(ROOT))
 from chisel.core.geometry import Camera  # noqa: E402
 from chisel.io.sequence import Sequence  # noqa: E402
 from chisel.model import TsdfModel  # noqa: E402
+from chisel.odometry import OdometryConfig, smooth_poses  # noqa: E402
 from chisel.render import ModelRenderer  # noqa: E402
 from chisel.shading import (  # noqa: E402
+    ShadingConfig,
     high_pass,
     log_shading,
     shading_shift,
@@ -104,8 +110,43 @@ def _slope(measured: list[float], expected: list[float]) -> float:
     return float(x @ y / (x @ x)) if x @ x > 0 else float("nan")
 
 
+def _odometry(seq: Sequence, rc: object, cfg: ShadingConfig) -> dict[str, float]:
+    """Misalignment of every frame of the step after the odometry's smoothing, alone and
+    followed by the shading's step correction (median depth) measured from its poses."""
+    cam = seq.camera
+    n = len(seq)
+    tracked = [seq.poses[i] for i in range(n)]
+    true = np.stack([seq.true_poses[i] for i in range(n)])
+    frames = [seq.frame(i, depth=False) for i in range(n)]
+    renders = rc.render_depths(cam, np.stack(tracked))  # type: ignore[attr-defined]
+    truths = rc.render_depths(cam, true)  # type: ignore[attr-defined]
+    smoothed, _ = smooth_poses(
+        [f.rgb for f in frames], [f.mask for f in frames], list(renders), tracked, cam,
+        OdometryConfig(),
+    )  # fmt: skip
+    R = rc.render_depths(cam, np.stack(smoothed))  # type: ignore[attr-defined]
+    found = []
+    for k, f in enumerate(frames):
+        if np.isfinite(R[k]).any():
+            sh = shading_shift(f.rgb, R[k], cam, f.mask, cfg)
+            if shift_passes(sh, cfg):
+                d = float(np.median(R[k][np.isfinite(R[k])]))
+                found.append(translation_for_shift(cam, sh.dx_px, sh.dy_px, d)[:3, 3])
+    F = step_correction(found)
+
+    def mean_misalignment(poses: list[np.ndarray]) -> float:
+        return float(
+            np.nanmean([misalignment_px(truths[k], cam, true[k], poses[k]) for k in range(n)])
+        )
+
+    return {
+        "odometry_px": mean_misalignment(smoothed),
+        "odometry_median_px": mean_misalignment([T @ F for T in smoothed]),
+    }
+
+
 def _step(
-    run: Path, seed: int, step: int, method: str, frame_step: int, oracle: bool
+    run: Path, seed: int, step: int, method: str, frame_step: int, oracle: bool, odometry: bool
 ) -> dict[str, float]:
     cfg = UpdateConfig().shading
     base = run / f"seed_{seed}"
@@ -181,6 +222,8 @@ def _step(
 
         start = step_correction(t_median)[:2, 3]
         out["oracle_px"] = float(minimize(cost, start, method="Nelder-Mead").fun)
+    if odometry:
+        out.update(_odometry(seq, rc, cfg))
     return out
 
 
@@ -192,22 +235,33 @@ def main() -> None:
     ap.add_argument("--method", default="updated", help="whose M_t (a network row)")
     ap.add_argument("--frame-step", type=int, default=1)
     ap.add_argument("--oracle", action="store_true", help="also the best constant translation")
+    ap.add_argument(
+        "--odometry", action="store_true", help="also the poses smoothed by odometry (all frames)"
+    )
     args = ap.parse_args()
     if args.frame_step < 1:
         ap.error("--frame-step must be >= 1")
     rows = {}
     for seed in parse_seeds(args.seeds):
         for step in parse_seeds(args.steps):
-            r = _step(args.run, seed, step, args.method, args.frame_step, args.oracle)
+            r = _step(
+                args.run, seed, step, args.method, args.frame_step, args.oracle, args.odometry
+            )
             rows[(seed, step)] = r
             for key, value in r.items():
                 fmt = ".0f" if key == "frames" else ".3f"
                 print(f"seed_{seed}_step_{step}_{key}: {value:{fmt}}", flush=True)
     keys = ["none_px", "median_px", "parallax_px"] + (["oracle_px"] if args.oracle else [])
+    keys += ["odometry_px", "odometry_median_px"] if args.odometry else []
     for key in keys + ["slope_median", "slope_parallax"]:
         print(f"mean_{key}: {np.nanmean([r[key] for r in rows.values()]):.3f}")
     better = sum(r["parallax_px"] < r["median_px"] for r in rows.values())
     print(f"parallax_better_steps: {better} of {len(rows)}")
+    if args.odometry:
+        ratios = [r["odometry_median_px"] / r["median_px"] for r in rows.values()]
+        print(f"odometry_better_steps: {sum(q < 1 for q in ratios)} of {len(rows)}")
+        geo_odometry = math.exp(np.mean(np.log(ratios)))
+        print(f"odometry_over_median_misalignment_geomean: {geo_odometry:.3f}")
     geo = math.exp(np.mean([math.log(r["parallax_px"] / r["median_px"]) for r in rows.values()]))
     print(f"parallax_over_median_misalignment_geomean: {geo:.3f}")
 

@@ -41,6 +41,7 @@ from chisel.fusion import check_pose_in_model
 from chisel.icp import icp_hand_eye, icp_similarity
 from chisel.io.sequence import Frame
 from chisel.model import TsdfModel
+from chisel.odometry import smooth_poses
 from chisel.registration import (
     REJECTED_BY_DEPTH_RESIDUAL,
     REJECTED_BY_TRACKING_ACCURACY,
@@ -51,7 +52,7 @@ from chisel.registration import (
     tracking_excess,
 )
 from chisel.render import ModelRenderer
-from chisel.reports import FrameReport, StepReport, shading_report
+from chisel.reports import FrameReport, StepReport, odometry_report, shading_report
 from chisel.shading import step_correction
 from chisel.update_config import UpdateConfig
 from chisel.updater import finish_step, fuse, shading_translation_of
@@ -112,7 +113,14 @@ def plan_step(
     # Metric depth (exact, a sensor's) is not thrown off by a tool beside the tissue, and
     # its frames' other views would be lost: only estimates leave occluded frames out.
     skip = cfg.skip_occluded_frames and (solve_for_scale or is_estimate(depth_source))
-    if skip or cfg.register or cfg.shading.align_by_shading or wants_prior(depth_source):
+    odometry = cfg.odometry.smooth_by_odometry and all(f.rgb is not None for f in frames)
+    if (
+        skip
+        or cfg.register
+        or cfg.shading.align_by_shading
+        or odometry
+        or wants_prior(depth_source)
+    ):
         # M_t at every tracked pose: registration's reference, the shading's prediction,
         # the prior handed to a depth source that wants one (the change-aware network),
         # and what tells an instrument in view.
@@ -128,6 +136,9 @@ def plan_step(
         frames = [f for f, k in zip(frames, keep, strict=True) if k]
         poses = [T for T, k in zip(poses, keep, strict=True) if k]
         renders = [R for R, k in zip(renders, keep, strict=True) if k]
+    if odometry and len(frames) > 1:
+        poses, correction = _smooth_by_odometry(frames, poses, renders, camera, cfg)
+        renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
     if cfg.shading.align_by_shading and renders[0] is not None:
         rendered = cast(list[np.ndarray], renders)
         shifts = [
@@ -141,7 +152,7 @@ def plan_step(
                 F_shading[:3, 3].round(3), len(found), len(frames),
             )  # fmt: skip
             poses = [T @ F_shading for T in poses]
-            correction = shading_report(F_shading, len(found), len(frames))
+            correction = shading_report(F_shading, len(found), len(frames), correction)
             renders = list(renderer.raycaster.render_depths(camera, np.stack(poses)))
     estimates, reliable = [], []
     for f, R in zip(frames, renders, strict=True):
@@ -163,6 +174,29 @@ def plan_step(
         )
     ]
     return StepPlan(inputs, renderer, F, seq_reg, step_cfg, solve_for_scale, correction, skipped)
+
+
+def _smooth_by_odometry(
+    frames: list[Frame],
+    poses: list[np.ndarray],
+    renders: list[np.ndarray | None],
+    camera: Camera,
+    cfg: UpdateConfig,
+) -> tuple[list[np.ndarray], dict]:
+    """The step's tracked poses with less jitter (:func:`chisel.odometry.smooth_poses`),
+    and the report's account of it."""
+    smoothed, pairs = smooth_poses(
+        [np.asarray(f.rgb) for f in frames], [f.mask for f in frames],
+        cast(list[np.ndarray], renders), poses, camera, cfg.odometry,
+    )  # fmt: skip
+    moved = [
+        float(np.linalg.norm(S[:3, 3] - T[:3, 3])) for S, T in zip(smoothed, poses, strict=True)
+    ]
+    log.info(
+        "odometry: %d of %d frame pairs moved the poses by %.3f mm (mean)",
+        pairs, len(frames) - 1, float(np.mean(moved)),
+    )  # fmt: skip
+    return smoothed, odometry_report(pairs, len(frames) - 1, moved)
 
 
 def _unoccluded(frames: list[Frame], renders: list[np.ndarray]) -> np.ndarray:

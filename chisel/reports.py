@@ -75,7 +75,8 @@ class StepReport:
     config: dict
     pose_correction: dict | None = None
     """The correction applied to every tracked pose before anything else saw it (the
-    frames' shading, ``UpdateConfig.shading``), or None. Streaming
+    frames' odometry, ``UpdateConfig.odometry``, then their shading,
+    ``UpdateConfig.shading``), or None. Streaming
     (:class:`chisel.updater.ChiselUpdater`): the median at the step's end; each frame was
     corrected by the median of the frames two or more before it (the first two not at
     all)."""
@@ -115,11 +116,29 @@ class StepReport:
         }
 
 
-def shading_report(F: np.ndarray, n_found: int, n_frames: int) -> dict:
-    """The report's ``pose_correction`` for a step corrected by its frames' shading."""
-    return {
-        "by": "shading",
+def shading_report(F: np.ndarray, n_found: int, n_frames: int, before: dict | None = None) -> dict:
+    """The report's ``pose_correction`` for a step corrected by its frames' shading;
+    ``before``: the odometry's account (:func:`odometry_report`) when it came first."""
+    out: dict = {
+        "by": "shading" if before is None else "odometry+shading",
         "translation_mm": [round(float(v), 4) for v in F[:3, 3]],
         "frames_found": n_found,
         "frames": n_frames,
+    }
+    if before is not None:
+        out["odometry"] = before["odometry"]
+    return out
+
+
+def odometry_report(pairs_used: int, pairs: int, moved_mm: list[float]) -> dict:
+    """The report's ``pose_correction`` for a step whose poses the frames' odometry moved
+    (``UpdateConfig.odometry``): how many consecutive pairs did, and by how much."""
+    return {
+        "by": "odometry",
+        "odometry": {
+            "pairs_used": pairs_used,
+            "pairs": pairs,
+            "moved_mm_mean": round(float(np.mean(moved_mm)), 4) if moved_mm else 0.0,
+            "moved_mm_max": round(float(np.max(moved_mm)), 4) if moved_mm else 0.0,
+        },
     }

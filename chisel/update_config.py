@@ -9,6 +9,7 @@ from typing import Literal
 from chisel.change import ChangeConfig
 from chisel.core.config import check_fields, check_ranges
 from chisel.io.limits import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX
+from chisel.odometry import OdometryConfig
 from chisel.registration import RegistrationConfig
 from chisel.shading import ShadingConfig
 
@@ -62,6 +63,8 @@ class UpdateConfig:
     and the change-aware row (1.13x) a step each on seeds 0-4 that they pass without it."""
     shading: ShadingConfig = field(default_factory=ShadingConfig)
     """Poses corrected by the frames' shading (off by default; :mod:`chisel.shading`)."""
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    """Tracked poses smoothed by the frames' odometry (off by default; :mod:`chisel.odometry`)."""
     max_points: int = 1500
     """About this many pixels (a regular stride) per frame in per-frame registration."""
     sequence_points: int = 500

@@ -446,13 +446,16 @@ def _cmd_update(args: argparse.Namespace) -> int:
         source = _NoisyDepth(source, args.depth_noise_mm, args.depth_noise_seed)
     n = len(seq) if args.max_frames is None else min(args.max_frames, len(seq))
     needs_rgb = getattr(source, "needs_rgb", not getattr(source, "is_metric", False))
-    if cfg.shading.align_by_shading:
+    for wanted, key in (
+        (cfg.shading.align_by_shading, "update.shading.align_by_shading"),
+        (cfg.odometry.smooth_by_odometry, "update.odometry.smooth_by_odometry"),
+    ):
+        if not wanted:
+            continue
         # Without this the frames of a metric source were read without their RGB, and the
         # correction was silently skipped.
         if not seq.has_rgb:
-            raise InvalidInputError(
-                seq.path, "update.shading.align_by_shading needs the frames' RGB; it has none"
-            )
+            raise InvalidInputError(seq.path, f"{key} needs the frames' RGB; it has none")
         needs_rgb = True
     frames = [seq.frame(i, rgb=needs_rgb or model.color is not None) for i in range(n)]
     new_model, report = update_step(
