@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
+from test_shading import _bumpy_surface
 
 from chisel.core.errors import InvalidInputError
 from chisel.core.geometry import Camera, invert_rigid
@@ -35,18 +36,6 @@ def _errors(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
     )
 
 
-def _wall() -> trimesh.Trimesh:
-    # A bumpy wall ~14 mm ahead, as in tests/test_shading.py.
-    x, y = np.meshgrid(np.linspace(-30, 30, 241), np.linspace(-30, 30, 241))
-    z = 14.0 + 1.2 * np.sin(x / 1.7) * np.cos(y / 2.3) + 0.8 * np.sin((x + 2 * y) / 3.1)
-    verts = np.stack([x, y, z], -1).reshape(-1, 3)
-    i = np.arange(240)[:, None] * 241 + np.arange(240)[None]
-    faces = np.concatenate(
-        [np.stack([i, i + 1, i + 241], -1), np.stack([i + 1, i + 242, i + 241], -1)]
-    ).reshape(-1, 3)
-    return trimesh.Trimesh(verts, faces, process=False)
-
-
 def _textured_frame(mesh: trimesh.Trimesh, cam: Camera, T: np.ndarray) -> np.ndarray:
     """8-bit frame of a matte, textured surface lit from the lens, traced with trimesh
     along the camera's own (distorted) rays: mucosa-like albedo blobs times cos / r^2."""
@@ -68,7 +57,7 @@ def _textured_frame(mesh: trimesh.Trimesh, cam: Camera, T: np.ndarray) -> np.nda
 
 @pytest.mark.parametrize("distorted", [False, True])
 def test_the_motion_between_two_textured_frames_is_measured(distorted: bool) -> None:
-    mesh = _wall()
+    mesh = _bumpy_surface()  # a bumpy wall ~14 mm ahead
     dist = np.array([-0.18, 0.04, 0.0004, -0.0003, 0.0]) if distorted else None
     cam = Camera.from_fov(192, 160, 80, dist=dist)
     T0 = np.eye(4)
