@@ -49,6 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from chisel.core.geometry import Camera  # noqa: E402
+from chisel.core.raycast import MeshRaycaster  # noqa: E402
 from chisel.io.sequence import Sequence  # noqa: E402
 from chisel.model import TsdfModel  # noqa: E402
 from chisel.odometry import OdometryConfig, smooth_poses  # noqa: E402
@@ -58,6 +59,7 @@ from chisel.shading import (  # noqa: E402
     high_pass,
     log_shading,
     shading_shift,
+    shading_translation,
     shift_passes,
     step_correction,
     translation_for_shift,
@@ -110,7 +112,7 @@ def _slope(measured: list[float], expected: list[float]) -> float:
     return float(x @ y / (x @ x)) if x @ x > 0 else float("nan")
 
 
-def _odometry(seq: Sequence, rc: object, cfg: ShadingConfig) -> dict[str, float]:
+def _odometry(seq: Sequence, rc: MeshRaycaster, cfg: ShadingConfig) -> dict[str, float]:
     """Misalignment of every frame of the step after the odometry's smoothing, alone and
     followed by the shading's step correction (median depth) measured from its poses."""
     cam = seq.camera
@@ -118,21 +120,15 @@ def _odometry(seq: Sequence, rc: object, cfg: ShadingConfig) -> dict[str, float]
     tracked = [seq.poses[i] for i in range(n)]
     true = np.stack([seq.true_poses[i] for i in range(n)])
     frames = [seq.frame(i, depth=False) for i in range(n)]
-    renders = rc.render_depths(cam, np.stack(tracked))  # type: ignore[attr-defined]
-    truths = rc.render_depths(cam, true)  # type: ignore[attr-defined]
+    renders = rc.render_depths(cam, np.stack(tracked))
+    truths = rc.render_depths(cam, true)
     smoothed, _ = smooth_poses(
         [f.rgb for f in frames], [f.mask for f in frames], list(renders), tracked, cam,
         OdometryConfig(),
     )  # fmt: skip
-    R = rc.render_depths(cam, np.stack(smoothed))  # type: ignore[attr-defined]
-    found = []
-    for k, f in enumerate(frames):
-        if np.isfinite(R[k]).any():
-            sh = shading_shift(f.rgb, R[k], cam, f.mask, cfg)
-            if shift_passes(sh, cfg):
-                d = float(np.median(R[k][np.isfinite(R[k])]))
-                found.append(translation_for_shift(cam, sh.dx_px, sh.dy_px, d)[:3, 3])
-    F = step_correction(found)
+    R = rc.render_depths(cam, np.stack(smoothed))
+    found = [shading_translation(f.rgb, R[k], cam, f.mask, cfg) for k, f in enumerate(frames)]
+    F = step_correction([t for t in found if t is not None])
 
     def mean_misalignment(poses: list[np.ndarray]) -> float:
         return float(

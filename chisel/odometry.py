@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from chisel.core.config import check_fields, check_ranges
 from chisel.core.errors import InvalidInputError
-from chisel.core.geometry import Camera, invert_rigid
+from chisel.core.geometry import Camera, invert_rigid, make_transform
 
 # Depth limits of the odometry's points, mm: an endoscope's working range (5-30 mm) with
 # room on both sides; nearer or farther the render is no longer the tissue's depth.
@@ -161,10 +161,8 @@ def _log(T: np.ndarray) -> np.ndarray:
 
 
 def _exp(x: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(x[3:]).as_matrix()
-    T[:3, 3] = x[:3]
-    return T
+    """(4, 4) rigid transform of a (6,) translation and rotation vector (inverse of _log)."""
+    return make_transform(Rotation.from_rotvec(x[3:]).as_matrix(), x[:3])
 
 
 def _adjoint(T: np.ndarray) -> np.ndarray:
